@@ -1,0 +1,53 @@
+"""The ``softbody`` command line.
+
+Each subcommand lives in its own module, which provides ``add_arguments(parser)`` and
+``run(args) -> int``; it is imported only when that subcommand runs, so ``softbody --help``
+stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+#: name -> (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "demo": ("softbody.demo", "mesh, simulate and optimise the example robot; write renders and metrics"),
+    "mesh": ("softbody.meshing.cli", "mesh an example robot, an STL/OBJ/STEP file or a gmsh script"),
+    "run": ("softbody.runner", "simulate a mesh with given material and options; write a result .npz"),
+    "view": ("softbody.viewer", "open a result in the browser viewer (viser)"),
+    "render": ("softbody.render", "render a result offscreen to PNG, GIF or MP4 (pyvista)"),
+    "bench": ("softbody.bench", "run a benchmark; writes DIR/<name>.json and a PNG"),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="softbody",
+        description="Differentiable soft-robot design and control workbench.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (_module, help_text) in COMMANDS.items():
+        sub.add_parser(name, help=help_text, description=help_text, add_help=False)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    if not argv or argv[0] not in COMMANDS:
+        args = parser.parse_args(argv)  # prints help / error for unknown commands
+        parser.print_help()
+        return 0 if args.command is None and not argv else 2
+    name = argv[0]
+    module_name, help_text = COMMANDS[name]
+    module = importlib.import_module(module_name)
+    sub = argparse.ArgumentParser(prog=f"softbody {name}", description=help_text)
+    module.add_arguments(sub)
+    args = sub.parse_args(argv[1:])
+    return int(module.run(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
