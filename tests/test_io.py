@@ -1,0 +1,232 @@
+"""Result files: .npz round trip, overwrite protection, ParaView (.vtu/.pvd) and XDMF export."""
+
+import itertools
+import json
+
+import meshio
+import numpy as np
+import pytest
+
+from softbody.io import (
+    Result,
+    ResultError,
+    color_options,
+    read_vtu_series,
+    to_vtu_series,
+    to_xdmf,
+    vertex_activation,
+    vertex_strain,
+    vertex_values,
+    write_metrics,
+)
+from softbody.meshing.mesh import TetMesh
+
+
+def box_mesh(nx=4, ny=2, nz=2, size=(0.2, 0.05, 0.05)):
+    """A structured box of ``nx*ny*nz`` cubes, each split into 6 positively oriented tets.
+
+    Returns ``points (n, 3)`` and ``tets (t, 4)``.
+    """
+    axes = [np.linspace(0.0, s, k + 1) for s, k in zip(size, (nx, ny, nz))]
+    points = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    idx = np.arange(len(points)).reshape(nx + 1, ny + 1, nz + 1)
+    tets = []
+    for i, j, k in itertools.product(range(nx), range(ny), range(nz)):
+        for order in itertools.permutations(range(3)):  # Kuhn split: one tet per axis order
+            corner = [0, 0, 0]
+            tet = [idx[i, j, k]]
+            for axis in order:
+                corner[axis] = 1
+                tet.append(idx[i + corner[0], j + corner[1], k + corner[2]])
+            tets.append(tet)
+    tets = np.array(tets)
+    p = points[tets]
+    flip = np.linalg.det(p[:, 1:] - p[:, :1]) < 0
+    tets[flip] = tets[flip][:, [0, 2, 1, 3]]
+    return points, tets
+
+
+def box_result(frames=3, with_extras=True, lift=0.0):
+    """A cantilever-like box bending upwards over ``frames`` frames (frame 0 at rest).
+
+    With extras: a ``muscle:top`` region driven by channel ``top``, a ``fixed`` region, a
+    ``pressure`` field, a loss history, obstacles, one skeleton segment and metadata.
+    ``lift`` raises the body off the ground by that many metres.
+    """
+    points, tets = box_mesh()
+    top = np.flatnonzero(points[:, 2] > 0.05 - 1e-9)
+    fixed = np.flatnonzero(points[:, 0] < 1e-9)
+    mesh = TetMesh(points, tets, regions={"muscle:top": top, "fixed": fixed})
+    s = np.linspace(0.0, 1.0, frames)
+    # Bend about the y axis: z grows with x^2, stronger in later frames.
+    x = np.repeat(points[None], frames, axis=0)
+    x[:, :, 2] += lift + 2.0 * s[:, None] * points[None, :, 0] ** 2
+    x[:, :, 0] *= 1.0 - 0.3 * s[:, None] * points[None, :, 2] / 0.05
+    if not with_extras:
+        return Result.from_mesh(mesh, x, dt=0.01)
+    return Result.from_mesh(
+        mesh, x, dt=0.01,
+        activation=s[:, None] * np.array([[1.0, 0.5]]),
+        channel_names=["top", "spare"],
+        fields={"pressure": np.outer(s, points[:, 0])},
+        loss_history=np.geomspace(1.0, 1e-3, 20),
+        obstacles=[{"type": "plane", "point": [0, 0, 0], "normal": [0, 0, 1]},
+                   {"type": "sphere", "center": np.array([0.3, 0.0, 0.05]), "radius": 0.03,
+                    "name": "ball"}],
+        skeleton=np.stack([np.stack([xf[0], xf[-1]])[None] for xf in x]),
+        metadata={"material": {"E": 1e5, "nu": np.float64(0.45)}, "steps": np.int64(frames)},
+    )
+
+
+def test_save_load_round_trip(tmp_path):
+    res = box_result()
+    path = res.save(tmp_path / "sub" / "result.npz")
+    back = Result.load(path)
+    for name in ("points", "tets", "surface", "x", "activation", "loss_history", "skeleton"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(res, name))
+    assert back.dt == res.dt
+    assert back.channel_names == ("top", "spare")
+    assert set(back.fields) == {"pressure"}
+    np.testing.assert_array_equal(back.fields["pressure"], res.fields["pressure"])
+    assert set(back.regions) == {"muscle:top", "fixed"}
+    np.testing.assert_array_equal(back.regions["muscle:top"].vertices, res.regions["muscle:top"].vertices)
+    assert back.obstacles == res.obstacles
+    assert back.obstacles[1] == {"type": "sphere", "center": [0.3, 0.0, 0.05], "radius": 0.03, "name": "ball"}
+    assert back.metadata == {"material": {"E": 1e5, "nu": 0.45}, "steps": 3}
+
+
+def test_minimal_round_trip(tmp_path):
+    res = box_result(frames=1, with_extras=False)
+    back = Result.load(res.save(tmp_path / "r.npz"))
+    assert back.activation is None and back.loss_history is None and back.skeleton is None
+    assert back.obstacles == () and back.metadata == {} and back.n_frames == 1
+
+
+def test_no_overwrite_without_force(tmp_path):
+    path = tmp_path / "result.npz"
+    box_result(frames=2).save(path)
+    before = path.read_bytes()
+    other = box_result(frames=3)
+    with pytest.raises(FileExistsError, match="force=True"):
+        other.save(path)
+    assert path.read_bytes() == before
+    other.save(path, force=True)
+    assert Result.load(path).n_frames == 3
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["result.npz"]  # no temporary files left
+
+    metrics = tmp_path / "metrics.json"
+    write_metrics(metrics, {"loss": np.float64(0.5), "curve": np.arange(3)})
+    assert json.loads(metrics.read_text()) == {"curve": [0, 1, 2], "loss": 0.5}
+    with pytest.raises(FileExistsError, match="--force"):
+        write_metrics(metrics, {"loss": 1.0})
+    write_metrics(metrics, {"loss": 1.0}, force=True)
+    assert json.loads(metrics.read_text()) == {"loss": 1.0}
+
+
+def test_load_errors(tmp_path):
+    with pytest.raises(FileNotFoundError, match="no result file"):
+        Result.load(tmp_path / "missing.npz")
+    np.savez(tmp_path / "other.npz", a=np.zeros(3))
+    with pytest.raises(ResultError, match="not a softbody result"):
+        Result.load(tmp_path / "other.npz")
+    res = box_result(frames=2, with_extras=False)
+    res.save(tmp_path / "full.npz")
+    with np.load(tmp_path / "full.npz") as data:
+        partial = {k: data[k] for k in data.files if k not in ("x", "surface")}
+    np.savez(tmp_path / "partial.npz", **partial)
+    with pytest.raises(ResultError, match=r"lacks the entries \['surface', 'x'\]"):
+        Result.load(tmp_path / "partial.npz")
+    with pytest.raises(ValueError, match="end in .npz"):
+        res.save(tmp_path / "result.h5")
+
+
+def test_validation_names_the_problem():
+    res = box_result(frames=2, with_extras=False)
+    base = dict(points=res.points, tets=res.tets, surface=res.surface, x=res.x, dt=0.01)
+    with pytest.raises(ResultError, match=r"x\[None\]"):
+        Result(**{**base, "x": res.x[0]})
+    bad = res.x.copy()
+    bad[1, 0, 0] = np.nan
+    with pytest.raises(ResultError, match="not finite from frame 1"):
+        Result(**{**base, "x": bad})
+    with pytest.raises(ResultError, match="dt must be a positive"):
+        Result(**{**base, "dt": 0.0})
+    with pytest.raises(ResultError, match="unknown type 'cone'"):
+        Result(**base, obstacles=[{"type": "cone"}])
+    with pytest.raises(ResultError, match=r"lacks \['radius'\]"):
+        Result(**base, obstacles=[{"type": "sphere", "center": [0, 0, 0]}])
+    with pytest.raises(ResultError, match="reserved"):
+        Result(**base, fields={"strain": np.zeros((2, res.n_vertices))})
+    with pytest.raises(ResultError, match="channel_names"):
+        Result(**base, activation=np.zeros((2, 2)), channel_names=["a"])
+    with pytest.raises(ResultError, match="JSON"):
+        Result(**base, metadata={"f": object()})
+
+
+def test_derived_quantities():
+    res = box_result(frames=3)
+    strain = vertex_strain(res)
+    assert strain.shape == (3, res.n_vertices)
+    np.testing.assert_allclose(strain[0], 0.0, atol=1e-12)
+    assert strain[2].max() > strain[1].max() > 0.01
+    # Rigid motion: rotation plus translation gives no strain.
+    c, s = np.cos(0.7), np.sin(0.7)
+    rot = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    rigid = Result(res.points, res.tets, res.surface, np.stack([res.points, res.points @ rot.T + 1.0]), 0.1)
+    np.testing.assert_allclose(vertex_strain(rigid), 0.0, atol=1e-12)
+
+    assert color_options(res) == ["strain", "displacement", "activation", "pressure"]
+    act = vertex_activation(res)
+    top = res.regions["muscle:top"].vertices
+    np.testing.assert_allclose(act[2, top], 1.0)
+    assert np.all(np.delete(act[2], top) == 0.0)
+    np.testing.assert_allclose(vertex_values(res, "displacement")[0], 0.0)
+    with pytest.raises(ResultError, match="offers"):
+        vertex_values(res, "temperature")
+
+
+def test_vtu_series_round_trip(tmp_path):
+    res = box_result(frames=3)
+    pvd = to_vtu_series(res, tmp_path / "vtu")
+    assert sorted(p.name for p in (tmp_path / "vtu").iterdir()) == [
+        "frame_00000.vtu", "frame_00001.vtu", "frame_00002.vtu", "series.json", "series.pvd"]
+    frame = meshio.read(tmp_path / "vtu" / "frame_00002.vtu")
+    np.testing.assert_allclose(frame.points, res.x[2])
+    np.testing.assert_allclose(frame.point_data["displacement"], res.x[2] - res.points)
+    np.testing.assert_allclose(frame.point_data["activation"], vertex_activation(res)[2])
+    np.testing.assert_allclose(frame.point_data["activation:spare"], 0.5)
+    np.testing.assert_allclose(frame.point_data["pressure"], res.fields["pressure"][2])
+    np.testing.assert_array_equal(frame.cells_dict["tetra"], res.tets)
+
+    back = read_vtu_series(pvd)
+    np.testing.assert_allclose(back.points, res.points, atol=1e-12)
+    np.testing.assert_allclose(back.x, res.x)
+    np.testing.assert_allclose(back.activation, res.activation)
+    assert back.channel_names == res.channel_names and back.dt == res.dt
+    np.testing.assert_allclose(back.fields["pressure"], res.fields["pressure"])
+    np.testing.assert_array_equal(back.regions["muscle:top"].vertices, res.regions["muscle:top"].vertices)
+    assert back.obstacles == res.obstacles and back.metadata == res.metadata
+    assert len(back.surface) == len(res.surface)
+
+    with pytest.raises(FileExistsError, match="force=True"):
+        to_vtu_series(res, tmp_path / "vtu")
+    to_vtu_series(box_result(frames=2), tmp_path / "vtu", force=True)
+    assert read_vtu_series(pvd).n_frames == 2
+
+
+def test_xdmf_writes_and_reads_back(tmp_path):
+    res = box_result(frames=3)
+    path = to_xdmf(res, tmp_path / "traj.xdmf")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["traj.xdmf"]  # self-contained
+    with meshio.xdmf.TimeSeriesReader(path) as reader:
+        points, cells = reader.read_points_cells()
+        np.testing.assert_allclose(points, res.points)
+        np.testing.assert_array_equal(cells[0].data, res.tets)
+        for k in range(3):
+            t, point_data, _ = reader.read_data(k)
+            assert t == pytest.approx(k * res.dt)
+            np.testing.assert_allclose(point_data["position"], res.x[k])
+            np.testing.assert_allclose(point_data["displacement"], res.x[k] - res.points)
+            np.testing.assert_allclose(point_data["pressure"], res.fields["pressure"][k])
+    with pytest.raises(FileExistsError):
+        to_xdmf(res, path)
