@@ -45,11 +45,14 @@ def session(name: str = "softbody") -> Iterator[None]:
             gmsh.option.setNumber("Mesh.Algorithm3D", 1)  # Delaunay (HXT is not reproducible)
             gmsh.option.setNumber("Mesh.Optimize", 1)
             gmsh.option.setString("Geometry.OCCTargetUnit", "M")  # STEP/IGES imports in metres
+            previous = None if owner else gmsh.model.getCurrent()
             gmsh.model.add(name)
             try:
                 yield
             finally:
                 gmsh.model.remove()
+                if previous:
+                    gmsh.model.setCurrent(previous)
         finally:
             if owner:
                 gmsh.finalize()

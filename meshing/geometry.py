@@ -427,7 +427,8 @@ def select_regions(mesh: TetMesh, select: Mapping[str, Selection]) -> TetMesh:
             raise MeshError(f"selection {name!r} must return one bool per vertex "
                             f"({mesh.n_vertices},), got shape {mask.shape}")
         if not mask.any():
-            raise MeshError(f"selection {name!r} matched no vertex; the mesh spans {lo} to {hi} "
+            raise MeshError(f"selection {name!r} matched no vertex; the mesh spans "
+                            f"{np.round(lo, 6).tolist()} to {np.round(hi, 6).tolist()} "
                             "(check the plane's value or the box's corners)")
         faces = mesh.surface[mask[mesh.surface].all(axis=1)]
         new[name] = Region(np.flatnonzero(mask), faces=faces)

@@ -110,6 +110,7 @@ def self_intersections(points: np.ndarray, faces: np.ndarray, *, eps: float = 1e
     d = np.linalg.norm(centroid[i] - centroid[j], axis=1)
     lo, hi = tri.min(axis=1), tri.max(axis=1)
     keep = (d <= radius[i] + radius[j]) & np.all((lo[i] <= hi[j]) & (lo[j] <= hi[i]), axis=1)
+    # Triangles sharing an edge can only overlap if coplanar, which is not tested: skip them.
     shared = (f[i][:, :, None] == f[j][:, None, :]).sum(axis=(1, 2))
     keep &= shared < 2
     i, j = i[keep], j[keep]
