@@ -45,6 +45,7 @@ import numpy as np
 
 from . import _gmsh
 from .mesh import MeshError, Region, TetMesh
+from .quality import check_quality
 
 DimTags = list[tuple[int, int]]
 Vector = Union[Sequence[float], np.ndarray]
@@ -470,8 +471,6 @@ def mesh(
             cavities that end up outside the solid, gmsh failures, and meshes below
             ``min_quality`` (the message says how to refine or lower it).
     """
-    from .quality import check_quality
-
     _check_shape(shape)
     size = _positive(size, "size")
     sizes = {k: _positive(h, f"size of region {k!r}") for k, h in (sizes or {}).items()}
@@ -524,7 +523,10 @@ def _fragment(solid: DimTags, ctx: _Build) -> tuple[list[int], dict[str, list[in
         raise _gmsh.gmsh_error("making tagged parts conformal (fragment)", err,
                                "avoid exactly tangent or coincident faces") from None
     occ.synchronize()
-    vols = lambda maps: {t for m in maps for d, t in m if d == 3}  # noqa: E731
+
+    def vols(maps: list[DimTags]) -> set[int]:
+        return {t for m in maps for d, t in m if d == 3}
+
     kept = vols(pieces[: len(solid)])
     groups: list[tuple[str, set[int]]] = []
     i = len(solid)

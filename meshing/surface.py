@@ -19,6 +19,7 @@ import numpy as np
 from . import _gmsh
 from .geometry import CAD, DEFAULT_MIN_QUALITY, Selection, mesh, select_regions
 from .mesh import MeshError, TetMesh
+from .quality import check_quality
 
 SURFACE_SUFFIXES = (".stl", ".obj")
 CAD_SUFFIXES = (".step", ".stp", ".iges", ".igs", ".brep")
@@ -213,8 +214,6 @@ def tetrahedralize(
         MeshError: from :func:`check_surface`, on gmsh failures (the message suggests
             ``remesh=False`` or a smaller size) and on poor quality.
     """
-    from .quality import check_quality
-
     points = np.asarray(points, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
     check_surface(points, faces)
