@@ -458,7 +458,8 @@ def mesh(
             cavities (``"cavity:chamber"``, applied on its walls).
         select: region name -> boundary selection (:class:`Plane`, :class:`InBox`, callable).
         min_quality: refuse meshes whose worst tet has gamma quality below this
-            (0 accepts any non-inverted mesh).
+            (0 accepts any non-inverted mesh). A first mesh below it is optimised once
+            more (Netgen's optimiser, then gmsh's) before being refused.
         curvature: at least this many elements per 2*pi of curvature on curved faces
             (0 turns it off).
 
@@ -488,7 +489,7 @@ def mesh(
                 raise MeshError(f"sizes names an unknown region {name!r}; the shape has "
                                 f"{sorted(tag_vols) + sorted(walls)}")
         _gmsh.set_sizes(size, curvature, local)
-        _gmsh.generate()
+        _gmsh.generate(min_quality)
         points, tets, slices, node_index = _gmsh.extract(kept)
         slice_of = dict(zip(kept, slices))
         regions = {}

@@ -205,7 +205,8 @@ def tetrahedralize(
         remesh: remesh the surface at ``size`` first (keeping edges sharper than 40
             degrees); with ``False`` the given triangles are the mesh's boundary.
         select: region name -> boundary selection, as in :func:`softbody.meshing.mesh`.
-        min_quality: refuse meshes whose worst tet's gamma is below this.
+        min_quality: refuse meshes whose worst tet's gamma is below this (after one
+            more optimisation pass, as in :func:`softbody.meshing.mesh`).
 
     Returns:
         The :class:`TetMesh`, with the selected regions.
@@ -237,7 +238,7 @@ def tetrahedralize(
             raise _gmsh.gmsh_error("preparing the surface", err,
                                    "try remesh=False (--keep-surface) to use the triangles as given") from None
         _gmsh.set_sizes(size, curvature=0)
-        _gmsh.generate()
+        _gmsh.generate(min_quality)
         pts, tets, _, _ = _gmsh.extract([vol])
     m = select_regions(TetMesh(pts, tets), select or {})
     check_quality(m, min_quality)

@@ -203,6 +203,14 @@ def test_random_boxes_and_cylinders_never_invert(dims, frac, offset, axis):
 # Quality
 
 
+def test_slivers_near_thin_walls_are_optimised_away():
+    # A 3 mm wall at a 10 mm size: gmsh's first mesh has a tet of gamma 0.086 here.
+    dims = np.array([0.08960562361066403, 0.0870202846087582, 0.03])
+    shape = Box(dims) - Cylinder(0.39959215342901405 * 0.03, 2 * dims[0], axis="x")
+    assert quality_report(mesh(shape, size=0.01, min_quality=0.0)).min_quality < 0.1
+    assert quality_report(mesh(shape, size=0.01)).min_quality >= 0.1
+
+
 def test_gamma_of_known_tets():
     regular = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float)
     corner = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float)
