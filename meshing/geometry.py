@@ -102,20 +102,51 @@ class Shape:
         return _Boolean("intersect", self, _check_shape(other))
 
     def translate(self, offset: Vector) -> "Shape":
-        """This shape moved by ``offset`` (3,)."""
+        """This shape moved by ``offset``.
+
+        Arguments:
+            offset: ``(3,)`` displacement in metres.
+
+        Returns:
+            The moved shape (tags and cavities inside it move with it).
+
+        Raises:
+            MeshError: if ``offset`` is not 3 finite numbers.
+        """
         return _Moved(self, ("translate", _vec(offset, "offset")))
 
     def rotate(self, angle: float, axis: Vector | str, center: Vector = (0.0, 0.0, 0.0)) -> "Shape":
-        """This shape rotated by ``angle`` radians about ``axis`` through ``center``."""
+        """This shape rotated about an axis (right-hand rule).
+
+        Arguments:
+            angle: radians.
+            axis: ``"x"``, ``"y"``, ``"z"`` or a direction ``(3,)``.
+            center: a point ``(3,)`` on the axis.
+
+        Returns:
+            The rotated shape (tags and cavities inside it turn with it).
+
+        Raises:
+            MeshError: on a non-finite angle or a zero or non-finite axis.
+        """
         if not math.isfinite(angle):
             raise MeshError(f"rotation angle must be finite, got {angle}")
         return _Moved(self, ("rotate", float(angle), _vec(axis, "rotation axis", unit=True),
                              _vec(center, "rotation center")))
 
     def mark(self, name: str, where: "Shape") -> "Shape":
-        """This shape, with the part of it inside ``where`` named ``name`` (a tet region).
+        """This shape, with the part of it inside ``where`` named ``name``.
 
-        ``where`` adds no material: only its overlap with the final solid counts.
+        Arguments:
+            name: the region name (e.g. ``"muscle:top"``).
+            where: a shape; it adds no material, only its overlap with the final solid
+                counts. The mesh conforms to its boundary.
+
+        Returns:
+            The same solid; its mesh gets the region ``name`` (tets and vertices).
+
+        Raises:
+            MeshError: on an empty name; at meshing time, if the overlap is empty.
         """
         return _Marked(self, _check_name(name), _check_shape(where))
 
