@@ -32,7 +32,8 @@ import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
-from typing import Any, Iterator, Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import scipy.sparse
@@ -310,7 +311,7 @@ class Result:
         setf("metadata", metadata)
 
     @classmethod
-    def from_mesh(cls, mesh: Any, x: Any, dt: float, **optional: Any) -> "Result":
+    def from_mesh(cls, mesh: Any, x: Any, dt: float, **optional: Any) -> Result:
         """A result for a trajectory simulated on ``mesh``.
 
         Arguments:
@@ -388,7 +389,7 @@ class Result:
         return path
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> "Result":
+    def load(cls, path: str | os.PathLike) -> Result:
         """Read a result written by :meth:`save`.
 
         Arguments:
@@ -811,11 +812,10 @@ def to_xdmf(result: Result, path: str | os.PathLike, force: bool = False) -> Pat
     if path.suffix != ".xdmf":
         raise ValueError(f"XDMF files end in .xdmf, got {path.name!r}")
     strain = vertex_strain(result)
-    with writing_to(path, force) as tmp:
-        with meshio.xdmf.TimeSeriesWriter(tmp, data_format="XML") as writer:
-            writer.write_points_cells(result.points, [("tetra", result.tets.astype(np.int64))])
-            for k, t in enumerate(result.times):
-                data = {"position": result.x[k], "displacement": result.x[k] - result.points,
-                        "strain": strain[k], **{n: v[k] for n, v in result.fields.items()}}
-                writer.write_data(float(t), point_data=data)
+    with writing_to(path, force) as tmp, meshio.xdmf.TimeSeriesWriter(tmp, data_format="XML") as writer:
+        writer.write_points_cells(result.points, [("tetra", result.tets.astype(np.int64))])
+        for k, t in enumerate(result.times):
+            data = {"position": result.x[k], "displacement": result.x[k] - result.points,
+                    "strain": strain[k], **{n: v[k] for n, v in result.fields.items()}}
+            writer.write_data(float(t), point_data=data)
     return path

@@ -19,7 +19,7 @@ from softbody.io import (
     vertex_values,
     write_metrics,
 )
-from softbody.meshing.mesh import TetMesh
+from softbody.meshing.mesh import Region, TetMesh
 
 
 def box_mesh(nx=4, ny=2, nz=2, size=(0.2, 0.05, 0.05)):
@@ -49,12 +49,13 @@ def box_mesh(nx=4, ny=2, nz=2, size=(0.2, 0.05, 0.05)):
 def box_result(frames=3, with_extras=True, lift=0.0):
     """A cantilever-like box bending upwards over ``frames`` frames (frame 0 at rest).
 
-    With extras: a ``muscle:top`` region driven by channel ``top``, a ``fixed`` region, a
+    With extras: a ``muscle:top`` region (the upper half's tets) driven by channel ``top``, a ``fixed`` region, a
     ``pressure`` field, a loss history, obstacles, one skeleton segment and metadata.
     ``lift`` raises the body off the ground by that many metres.
     """
     points, tets = box_mesh()
-    top = np.flatnonzero(points[:, 2] > 0.05 - 1e-9)
+    upper = np.flatnonzero(points[tets].mean(axis=1)[:, 2] > 0.025)
+    top = Region(np.unique(tets[upper]), tets=upper)
     fixed = np.flatnonzero(points[:, 0] < 1e-9)
     mesh = TetMesh(points, tets, regions={"muscle:top": top, "fixed": fixed})
     s = np.linspace(0.0, 1.0, frames)

@@ -1,0 +1,195 @@
+"""The browser viewer, served by a real viser server and drawn by Debian's headless chromium.
+
+The ``browser`` tests drive chromium over the DevTools protocol (``tests/cdp.py``): they
+load the page, wait for the scene, and check from screenshots that the mesh is drawn and
+that moving the timeline (or a live control) moves it. The other tests check the server
+side without a browser.
+"""
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from cdp import CHROMIUM, Chromium
+from test_io import box_result
+
+from softbody.io import ResultError
+from softbody.viewer import LiveViewer, PlaybackViewer, run, view, view_live
+
+SIZE = (960, 640)
+
+
+def scene(img):
+    """The part of the page left of the control panel, as float RGB."""
+    return img[:, : int(0.62 * img.shape[1])].astype(float)
+
+
+def changed(a, b, threshold=30.0):
+    """Mask of scene pixels whose colour differs between two screenshots."""
+    return np.abs(scene(a) - scene(b)).max(axis=-1) > threshold
+
+
+def screenshot_when(page, condition, what, timeout=40.0):
+    """Poll screenshots until two in a row show the same scene and satisfy ``condition``."""
+    deadline = time.monotonic() + timeout
+    previous = page.screenshot()
+    while time.monotonic() < deadline:
+        current = page.screenshot()
+        if np.array_equal(scene(current), scene(previous)) and condition(current):
+            return current
+        previous = current
+    pytest.fail(f"timed out after {timeout} s waiting for {what}")
+
+
+@pytest.fixture(scope="module")
+def browser():
+    if not Path(CHROMIUM).exists():
+        pytest.fail(f"Debian's chromium is missing ({CHROMIUM}); the browser tests need it: "
+                    "run `bash scripts/setup.sh test` (it installs chromium and fonts-dejavu-core)")
+    with Chromium(window_size=SIZE) as chromium:
+        yield chromium
+
+
+@pytest.fixture
+def playback():
+    viewer = view(box_result(frames=3), port=0, block=False)
+    yield viewer
+    viewer.stop()
+
+
+def lift_step(rest):
+    """A trivial live step: the body floats up by 5 cm times control 0 and leans by control 1."""
+    def step(state, controls):
+        offset = np.array([0.0, 0.0, 0.05]) * controls[0] + np.array([0.0, 0.05, 0.0]) * controls[1] * rest[:, 2:] / 0.05
+        return state + 1, rest + offset
+    return step
+
+
+@pytest.mark.browser
+def test_playback_in_browser(browser, playback):
+    assert playback.server.get_host() == "127.0.0.1" and playback.url.startswith("http://127.0.0.1:")
+    page = browser.new_page()
+    try:
+        page.navigate(playback.url)
+        page.wait_for_text("frame 0 / 2")
+        shown = screenshot_when(page, lambda img: scene(img).std() > 10, "the scene to render")
+
+        # The mesh's screen region: where hiding the body changes the picture.
+        playback.body.set_visible(False)
+        hidden = screenshot_when(page, lambda img: changed(img, shown).any(), "the body to disappear")
+        mesh = changed(shown, hidden)
+        assert mesh.mean() > 0.02, f"the mesh covers only {mesh.mean():.2%} of the view"
+        drawn, background = scene(shown)[mesh], scene(hidden)[mesh]
+        assert np.abs(drawn.mean(axis=0) - background.mean(axis=0)).max() > 40, \
+            "the mesh's pixels look like the background"
+        playback.body.set_visible(True)
+        back = screenshot_when(page, lambda img: changed(img, hidden).mean() > 0.5 * mesh.mean(),
+                               "the body to return")
+        assert changed(back, shown).mean() < 0.1 * mesh.mean()
+
+        # Move the timeline from the server: every open page follows.
+        playback.frame = 2
+        page.wait_for_text("frame 2 / 2")
+        moved = screenshot_when(page, lambda img: changed(img, shown).mean() > 0.01, "frame 2 to be drawn")
+        assert changed(moved, shown).mean() > 0.2 * mesh.mean(), "the picture barely changed between frames"
+    finally:
+        page.close()
+
+
+@pytest.mark.browser
+def test_live_in_browser(browser):
+    res = box_result(frames=1, with_extras=False)
+    live = view_live(res, lift_step(res.points), 0, ["lift", "lean"], port=0, block=False, rate=20)
+    page = browser.new_page()
+    try:
+        page.navigate(live.url)
+        page.wait_for_text("Steps per second")
+        rest = screenshot_when(page, lambda img: scene(img).std() > 10, "the live scene to render")
+        steps = live.steps
+        live.set_controls([1.0, 0.5])
+        lifted = screenshot_when(page, lambda img: changed(img, rest).mean() > 0.01, "the body to rise")
+        assert live.steps > steps
+        np.testing.assert_allclose(live.x[:, 2] - res.points[:, 2], 0.05)
+        assert changed(lifted, rest).mean() > 0.01
+    finally:
+        page.close()
+        live.stop()
+
+
+def test_playback_server_state(playback):
+    res = playback.result
+    assert isinstance(playback, PlaybackViewer)
+    opts = list(playback.gui["color_by"].options)
+    assert opts == ["strain", "displacement", "activation", "pressure", "regions", "none"]
+    for mode in opts:
+        playback.color_by = mode
+        coloring = playback.coloring(mode)
+        assert coloring.levels.shape[1] == len(res.surface)
+        # The body's meshes hold exactly the surface, at the shown frame's positions.
+        visible = [h for h in playback.body.handles.values() if h.visible]
+        assert sum(len(h.faces) for h in visible) == len(res.surface)
+        corners = np.concatenate([h.vertices[h.faces].reshape(-1, 3) for h in visible])
+        assert np.allclose(np.sort(corners, axis=0), np.sort(res.x[0][res.surface].reshape(-1, 3), axis=0), atol=1e-6)
+    assert "0.8387" in playback.coloring("strain").legend
+    with pytest.raises(ResultError, match="offers"):
+        playback.color_by = "temperature"
+    with pytest.raises(IndexError):
+        playback.frame = 3
+    playback.frame = -1
+    assert playback.frame == 2 and "frame 2 / 2" in playback.gui["clock"].content
+    assert "top: **1.000**" in playback.gui["activation"].content
+
+    playback.gui["region:muscle:top"].value = True
+    handle, used = playback._overlays["muscle:top"]
+    assert handle.visible and np.allclose(handle.vertices, res.x[2, used])
+
+    playback.frame = 0
+    playback.gui["speed"].value = 0.05  # 0.5 ms of simulated time per real ms: a frame every 0.2 s
+    playback.gui["play"].value = True
+    deadline = time.monotonic() + 5
+    while playback.frame == 0 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    playback.gui["play"].value = False
+    assert playback.frame > 0, "Play did not advance the timeline"
+
+
+def test_live_server_state():
+    res = box_result(frames=1, with_extras=False)
+    calls = []
+
+    def step(state, controls):
+        calls.append(controls.copy())
+        if state >= 5:
+            raise RuntimeError("solver diverged")
+        return lift_step(res.points)(state, controls)
+
+    live = view_live(res, step, 0, ["lift", "lean"], ranges=[(0, 2), (-1, 1)], port=0, block=False, rate=100)
+    try:
+        assert isinstance(live, LiveViewer) and live.url.startswith("http://127.0.0.1:")
+        np.testing.assert_array_equal(calls[0], [0.0, -1.0])  # sliders start at the range minimum
+        deadline = time.monotonic() + 5
+        while live.error is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert live.error == "RuntimeError: solver diverged" and not live.gui["run"].value
+        assert "solver diverged" in live.gui["status"].content
+        with pytest.raises(ValueError, match="outside its range"):
+            live.set_controls([3.0, 0.0])
+        live.set_controls([2.0, 0.0])
+        live.reset()
+        deadline = time.monotonic() + 5
+        while live.steps < 3 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        np.testing.assert_allclose(live.x[:, 2] - res.points[:, 2], 0.1)
+    finally:
+        live.stop()
+
+    with pytest.raises(ValueError, match="x of shape"):
+        view_live(res, lambda s, u: (s, np.zeros(3)), 0, ["a"], port=0, block=False)
+
+
+def test_view_command_reports_a_missing_file(tmp_path, capsys):
+    args = argparse.Namespace(result=str(tmp_path / "none.npz"), host="127.0.0.1", port=0, color_by="strain")
+    assert run(args) == 1
+    assert "no result file" in capsys.readouterr().err
