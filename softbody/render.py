@@ -245,7 +245,8 @@ class Scene:
 def render(result: Result | str | os.PathLike, path: str | os.PathLike, *, fps: float = 20.0,
            color_by: str | None = "strain", frame: int = -1, stride: int = 1,
            window_size: tuple[int, int] = (960, 720), cmap: str = "viridis",
-           clim: tuple[float, float] | None = None, ground: bool = True, force: bool = False) -> Path:
+           clim: tuple[float, float] | None = None, ground: bool = True, progress: bool = False,
+           force: bool = False) -> Path:
     """Render a result offscreen to a PNG (one frame), an animated GIF or an MP4.
 
     The camera frames the body's bounding box over the rendered frames and stays fixed;
@@ -265,6 +266,7 @@ def render(result: Result | str | os.PathLike, path: str | os.PathLike, *, fps: 
         cmap: matplotlib colour map name.
         clim: fixed ``(low, high)`` colour range; default the range over the rendered frames.
         ground: draw a floor when there is no plane obstacle.
+        progress: show a progress bar while rendering a GIF or MP4.
         force: overwrite an existing output file.
 
     Returns:
@@ -297,15 +299,19 @@ def render(result: Result | str | os.PathLike, path: str | os.PathLike, *, fps: 
     scene = Scene(result, color_by, frames, window_size, cmap, clim, ground)
     try:
         with writing_to(path, force) as tmp:
-            _write(scene, frames, tmp, path.suffix.lower(), fps, window_size)
+            _write(scene, frames, tmp, path.suffix.lower(), fps, window_size, progress)
     finally:
         scene.close()
     return path
 
 
 def _write(scene: Scene, frames: list[int], tmp: Path, suffix: str, fps: float,
-           window_size: tuple[int, int]) -> None:
+           window_size: tuple[int, int], progress: bool) -> None:
     import imageio.v3 as iio
+    from rich.progress import track
+
+    if progress and suffix != ".png":
+        frames = track(frames, description=f"rendering {len(frames)} frames")
 
     if suffix == ".png":
         iio.imwrite(tmp, scene.show(frames[0]), extension=".png")
@@ -399,7 +405,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         out = render(args.result, args.output, fps=args.fps, color_by=color_by, frame=args.frame,
                      stride=args.stride, window_size=(width, height), ground=not args.no_ground,
-                     force=args.force)
+                     progress=True, force=args.force)
     except (FileExistsError, FileNotFoundError, IndexError, ValueError) as err:
         print(f"softbody render: {err}", file=sys.stderr)
         return 1

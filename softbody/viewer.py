@@ -77,9 +77,15 @@ def face_levels(values: np.ndarray, faces: np.ndarray, lo: float, hi: float, lev
     Returns:
         ``(..., f)`` uint8 levels in ``[0, levels)``.
     """
-    mean = values[..., faces].mean(axis=-1)
-    scaled = (mean - lo) / max(hi - lo, 1e-300) * levels
-    return np.clip(np.floor(scaled), 0, levels - 1).astype(np.uint8)
+    values = np.asarray(values)
+    flat = values.reshape(-1, values.shape[-1])
+    out = np.empty((len(flat), len(faces)), np.uint8)
+    chunk = max(1, 2_000_000 // max(len(faces), 1))  # bounds the (frames, f, 3) temporary
+    for s in range(0, len(flat), chunk):
+        mean = flat[s:s + chunk, faces].mean(axis=-1)
+        scaled = (mean - lo) / max(hi - lo, 1e-300) * levels
+        out[s:s + chunk] = np.clip(np.floor(scaled), 0, levels - 1)
+    return out.reshape(*values.shape[:-1], len(faces))
 
 
 def _legend_html(title: str, colors: np.ndarray, lo: float, hi: float) -> str:
@@ -307,6 +313,12 @@ class _ServerViewer:
             self._thread.join(timeout=5)
         self.server.stop()
 
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
     def block(self) -> None:
         """Serve until Ctrl-C, then stop."""
         print(f"softbody viewer: open {self.url} in a browser (Ctrl-C to stop)", flush=True)
@@ -331,6 +343,11 @@ class PlaybackViewer(_ServerViewer):
     """
 
     def __init__(self, result: Result, host: str, port: int, color_by: str | None):
+        options = color_options(result) + (["regions"] if result.regions else []) + ["none"]
+        if color_by is None:
+            color_by = "none"
+        if color_by not in options:
+            raise ResultError(f"cannot colour by {color_by!r}; this result offers {options}")
         super().__init__(host, port, result.surface)
         self.result = result
         self._colorings: dict[str, Coloring] = {}
@@ -344,11 +361,6 @@ class PlaybackViewer(_ServerViewer):
         if result.skeleton is not None and result.skeleton.shape[1]:
             self.bones = self.server.scene.add_line_segments(
                 "/skeleton", result.skeleton[0].astype(np.float32), _BONE, thickness=0.012 * float(np.max(hi - lo)))
-        options = color_options(result) + (["regions"] if result.regions else []) + ["none"]
-        if color_by is None:
-            color_by = "none"
-        if color_by not in options:
-            raise ResultError(f"cannot colour by {color_by!r}; this result offers {options}")
         self._build_gui(options, color_by)
         self._mode = color_by
         self._show(0)

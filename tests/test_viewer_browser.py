@@ -193,3 +193,13 @@ def test_view_command_reports_a_missing_file(tmp_path, capsys):
     args = argparse.Namespace(result=str(tmp_path / "none.npz"), host="127.0.0.1", port=0, color_by="strain")
     assert run(args) == 1
     assert "no result file" in capsys.readouterr().err
+
+
+def test_minimal_result_and_bad_colouring():
+    res = box_result(frames=1, with_extras=False)
+    with pytest.raises(ResultError, match="offers"):
+        view(res, port=0, block=False, color_by="activation")
+    with view(res, port=0, block=False, color_by=None) as viewer:
+        assert list(viewer.gui["color_by"].options) == ["strain", "displacement", "regions", "none"]
+        assert viewer.gui["frame"].disabled and viewer.color_by == "none"
+        assert "frame 0 / 0" in viewer.gui["clock"].content
