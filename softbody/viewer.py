@@ -169,12 +169,14 @@ class Body:
         self.colors: dict[int, tuple[int, int, int]] = {}
         self.opacity: float | None = None
         self.visible = True
+        self.active: set[int] = set()  # levels drawn in the last show(); others hold stale geometry
 
     def show(self, x: np.ndarray, levels: np.ndarray, colors: np.ndarray) -> None:
         """Draw the surface at positions ``x`` ``(n, 3)`` with triangle ``levels`` ``(f,)``."""
         x = np.asarray(x, np.float32)
         order = np.argsort(levels, kind="stable")
         bounds = np.searchsorted(levels[order], np.arange(len(colors) + 1))
+        self.active = {k for k in range(len(colors)) if bounds[k + 1] > bounds[k]}
         with self.server.atomic():
             for k in range(max(len(colors), len(self.handles))):
                 handle = self.handles.get(k)
@@ -205,12 +207,11 @@ class Body:
         for handle in self.handles.values():
             handle.opacity = self.opacity
 
-    def set_visible(self, visible: bool, levels: np.ndarray | None = None) -> None:
+    def set_visible(self, visible: bool) -> None:
         """Show or hide the whole surface."""
         self.visible = bool(visible)
-        counts = None if levels is None else np.bincount(levels, minlength=len(self.handles))
         for k, handle in self.handles.items():
-            handle.visible = self.visible and (counts is None or counts[k] > 0)
+            handle.visible = self.visible and k in self.active
 
 
 def _nice(step: float) -> float:

@@ -132,6 +132,10 @@ def test_playback_server_state(playback):
         assert sum(len(h.faces) for h in visible) == len(res.surface)
         corners = np.concatenate([h.vertices[h.faces].reshape(-1, 3) for h in visible])
         assert np.allclose(np.sort(corners, axis=0), np.sort(res.x[0][res.surface].reshape(-1, 3), axis=0), atol=1e-6)
+        playback.body.set_visible(False)
+        assert not any(h.visible for h in playback.body.handles.values())
+        playback.body.set_visible(True)  # only the levels in use come back
+        assert sum(len(h.faces) for h in playback.body.handles.values() if h.visible) == len(res.surface)
     assert "0.8387" in playback.coloring("strain").legend
     with pytest.raises(ResultError, match="offers"):
         playback.color_by = "temperature"
