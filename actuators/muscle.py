@@ -1,0 +1,147 @@
+"""Muscle fibres: a PD term per tet that contracts along a rest fibre direction.
+
+For a muscle tet with unit rest fibre ``m``, activation ``a`` in [0, 1], stiffness ``k``
+(Pa) and design weight ``w`` (>= 0)::
+
+    E = V k w / 2 |F m - p|^2,    p = (1 - a) F m / |F m|
+
+i.e. the fibre's stretch ``|F m|`` is pulled toward ``1 - a``: ``a = 0`` is a passive
+fibre at its rest length, ``a = 0.3`` asks for 30 % contraction. The projection ``p`` is
+the closest point of ``F m`` on the sphere of radius ``1 - a`` (exact, so PD's monotone
+convergence holds), and the term's PD matrix ``V k w (G m)(G m)^T`` does not depend on
+``a``: activations change only the right-hand side, never the factorisation.
+Activations outside [0, 1] are clipped (their gradient is zero there).
+
+Design parameters (differentiable, in ``Params.actuators``): the stiffness ``k`` (one per
+muscle term) and the per-tet fibre weights ``w`` (``(m,)``, 1 by default), which the
+co-design API optimises to place muscles. Changing them changes the PD matrix, which is
+refactorised once per rollout.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from softbody.elastic import shape_gradients
+
+Array = jax.Array
+
+
+class MuscleParams(eqx.Module):
+    stiffness: Array  # scalar, Pa
+    weights: Array  # (m,) per-tet fibre weights
+
+
+class MusclePrep(eqx.Module):
+    tets: np.ndarray = eqx.field(static=True)
+    local_matrices: Array  # (m, 4, 4)
+    coef: Array  # (m,) V k w
+    fibre: Array  # (3, m)
+    channel: np.ndarray = eqx.field(static=True)
+
+
+@dataclass(frozen=True, eq=False)
+class Muscle:
+    """A group of muscle tets with one or more control channels.
+
+    Attributes:
+        tets: ``(m,)`` element indices.
+        fibres: ``(m, 3)`` unit rest fibre directions.
+        channel: ``(m,)`` index of each tet's channel in ``channel_names``.
+        channel_names: the control channels this term reads, in order.
+        stiffness: initial fibre stiffness ``k``, Pa.
+
+    Raises:
+        ValueError: empty channels, zero fibre directions, mismatched shapes.
+    """
+
+    tets: np.ndarray
+    fibres: np.ndarray
+    channel: np.ndarray
+    channel_names: tuple[str, ...]
+    stiffness: float = 1e5
+
+    def __post_init__(self):
+        tets = np.asarray(self.tets, np.int32).ravel()
+        fibres = np.asarray(self.fibres, np.float64).reshape(-1, 3)
+        channel = np.asarray(self.channel, np.int32).ravel()
+        if not (len(tets) == len(fibres) == len(channel)):
+            raise ValueError(f"muscle tets ({len(tets)}), fibres ({len(fibres)}) and channel ({len(channel)}) "
+                             "must have one row per tet")
+        norms = np.linalg.norm(fibres, axis=1)
+        if np.any(norms < 1e-12):
+            raise ValueError(f"{int((norms < 1e-12).sum())} muscle tets have a zero fibre direction")
+        for c, name in enumerate(self.channel_names):
+            if not np.any(channel == c):
+                raise ValueError(f"muscle channel {name!r} maps to no tets; remove it or give it a region with tets")
+        if len(tets) and (channel.min() < 0 or channel.max() >= len(self.channel_names)):
+            raise ValueError("muscle channel indices out of range of channel_names")
+        if not self.stiffness > 0:
+            raise ValueError(f"muscle stiffness must be > 0 Pa, got {self.stiffness}")
+        object.__setattr__(self, "tets", tets)
+        object.__setattr__(self, "fibres", fibres / norms[:, None])
+        object.__setattr__(self, "channel", channel)
+        object.__setattr__(self, "channel_names", tuple(self.channel_names))
+
+    @classmethod
+    def from_regions(cls, mesh, regions: Sequence[str], fibre=(1.0, 0.0, 0.0), stiffness: float = 1e5) -> "Muscle":
+        """One channel per tet region (channel named after the region).
+
+        Arguments:
+            mesh: the :class:`~softbody.meshing.TetMesh`.
+            regions: region names holding tets, e.g. ``["muscle:top", "muscle:bottom"]``.
+            fibre: a direction ``(3,)`` for all tets, or the name of a per-tet mesh field
+                ``(t, 3)`` (e.g. ``"fibre"``).
+            stiffness: fibre stiffness, Pa.
+
+        Raises:
+            KeyError: unknown region or field (naming those that exist).
+            ValueError: a region with no tets.
+        """
+        tets, channel = [], []
+        for c, name in enumerate(regions):
+            reg = mesh.region(name)
+            if reg.tets.size == 0:
+                raise ValueError(f"muscle region {name!r} has no tets; muscles need volume regions")
+            tets.append(reg.tets)
+            channel.append(np.full(len(reg.tets), c))
+        tets = np.concatenate(tets)
+        if isinstance(fibre, str):
+            if fibre not in mesh.fields:
+                raise KeyError(f"no per-tet field {fibre!r} in the mesh; it has {sorted(mesh.fields)}")
+            fibres = np.asarray(mesh.fields[fibre])[tets]
+        else:
+            fibres = np.broadcast_to(np.asarray(fibre, float), (len(tets), 3))
+        return cls(tets, fibres, np.concatenate(channel), tuple(regions), stiffness)
+
+    def init_params(self) -> MuscleParams:
+        return MuscleParams(stiffness=jnp.asarray(float(self.stiffness)), weights=jnp.ones(len(self.tets)))
+
+    def prepare(self, model, p: MuscleParams, dminv: Array, volume: Array) -> MusclePrep:
+        """Per-rollout data: PD matrix blocks ``(m, 4, 4)`` and coefficients."""
+        idx = jnp.asarray(self.tets)
+        g = shape_gradients(dminv[:, :, idx])  # (4, 3, m)
+        fibre = jnp.asarray(self.fibres.T)  # (3, m)
+        gm = jnp.einsum("ajm,jm->am", g, fibre)  # (4, m)
+        coef = volume[idx] * p.stiffness * p.weights
+        local = jnp.einsum("am,bm,m->mab", gm, gm, coef)
+        return MusclePrep(tets=self.tets, local_matrices=local, coef=coef, fibre=fibre, channel=self.channel)
+
+    def energy_and_stress(self, f: Array, prep: MusclePrep, activation: Array) -> tuple[Array, Array]:
+        """Energy ``(m,)`` and ``dE/dF`` ``(3, 3, m)`` for ``f`` ``(3, 3, m)`` and activations ``(c,)``."""
+        a = jnp.clip(activation, 0.0, 1.0)[jnp.asarray(prep.channel)]
+        m = prep.fibre
+        fm = jnp.stack([f[i, 0] * m[0] + f[i, 1] * m[1] + f[i, 2] * m[2] for i in range(3)])  # (3, m)
+        length = jnp.sqrt(fm[0] ** 2 + fm[1] ** 2 + fm[2] ** 2)
+        safe = jnp.where(length > 1e-12, length, 1.0)
+        r = fm * (1.0 - (1.0 - a) / safe)  # F m - p
+        energy = 0.5 * prep.coef * (r[0] ** 2 + r[1] ** 2 + r[2] ** 2)
+        stress = prep.coef * jnp.stack([jnp.stack([r[i] * m[j] for j in range(3)]) for i in range(3)])
+        return energy, stress
+

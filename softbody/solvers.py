@@ -1,0 +1,189 @@
+"""Nonlinear iterations for one implicit step: plain local-global PD and L-BFGS.
+
+Both minimise the step objective ``Phi(x)`` described by a :class:`StepProblem`, chiefly
+two callables:
+
+* ``evaluate(x, q) -> (phi, g, q)``: the objective, its gradient ``(n, 3)`` (zero on fixed
+  vertices) and the rotations of ``x`` (warm-started from ``q``). This is PD's local step.
+* ``precondition(g) -> A^-1 g``: the global step with the prefactored PD matrix ``A``.
+
+Plain PD is ``x <- x - A^-1 g(x)``: the local-global iteration written as a preconditioned
+gradient step; with exact projections it decreases ``Phi`` monotonically. L-BFGS (Liu et
+al. 2017, the forward solver DiffPD uses) takes ``A`` as its initial Hessian, so its first
+step is a PD step, and adds curvature from the last ``history`` steps; an Armijo
+backtracking line search keeps it a descent method, and when the search fails it falls
+back to the plain PD step, which always descends.
+
+Each method is a small frozen dataclass (static: changing it recompiles) with
+``run(problem, x0, q0, threshold, max_iter) -> Solution``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+Array = jax.Array
+
+
+class StepProblem(NamedTuple):
+    """What an iteration method sees of one implicit step.
+
+    Attributes:
+        evaluate: ``(x, q) -> (phi, g, q)``, see the module docstring.
+        precondition: ``g -> A^-1 g`` with the prefactored PD matrix.
+        matvec: ``x -> A x``.
+        diagonal: ``(n, 1)`` diagonal of ``A``.
+        x_n, v_n: ``(n, 3)`` state at the start of the step.
+        mass: ``(n, 1)`` lumped masses.
+        free: ``(n, 1)`` 1 on free vertices, 0 on fixed ones.
+        dt: the time step (0 for static solves).
+    """
+
+    evaluate: Callable
+    precondition: Callable
+    matvec: Callable
+    diagonal: Array
+    x_n: Array
+    v_n: Array
+    mass: Array
+    free: Array
+    dt: float
+
+
+class Solution(NamedTuple):
+    """Result of one step's nonlinear solve."""
+
+    x: Array  # (n, 3) positions
+    q: Array  # (4, t) rotations of x
+    iterations: Array  # int: iterations (global solves of the search direction)
+    evaluations: Array  # int: local steps (objective evaluations), line-search trials included
+    gnorm: Array  # final |g|
+
+
+class IterationMethod:
+    """Base class of the nonlinear iterations.
+
+    ``volume_weight`` scales the volume term's weight in the prefactored matrix.
+    """
+
+    volume_weight: float = 1.0
+
+    def run(self, problem: StepProblem, x0: Array, q0: Array, threshold: Array, max_iter: int) -> Solution:
+        raise NotImplementedError
+
+
+def _norm(g):
+    return jnp.sqrt(jnp.sum(g * g))
+
+
+@dataclass(frozen=True)
+class LocalGlobal(IterationMethod):
+    """Plain projective dynamics: alternate local projections and the global solve.
+
+    Its monotone decrease of the objective needs the PD matrix with the true weights, so
+    ``volume_weight`` is fixed at 1.
+    """
+
+    def run(self, problem, x0, q0, threshold, max_iter):
+        evaluate, precondition = problem.evaluate, problem.precondition
+        _, g0, q0 = evaluate(x0, q0)
+
+        def cond(c):
+            _, _, g, k = c
+            return (_norm(g) > threshold) & (k < max_iter)
+
+        def body(c):
+            x, q, g, k = c
+            x = x - precondition(g)
+            _, g, q = evaluate(x, q)
+            return x, q, g, k + 1
+
+        x, q, g, k = jax.lax.while_loop(cond, body, (x0, q0, g0, jnp.asarray(0)))
+        return Solution(x, q, k, k + 1, _norm(g))
+
+
+@dataclass(frozen=True)
+class LBFGS(IterationMethod):
+    """L-BFGS with the PD matrix as initial Hessian and Armijo backtracking.
+
+    Attributes:
+        history: number of stored curvature pairs.
+        max_line_search: halvings before falling back to the plain PD step.
+        volume_weight: scale of the volume term in the initial Hessian. On the shared
+            DiffPD cantilever (nu = 0.45, rel. tol 1e-4) 1.0 took 213 iterations per frame,
+            0.33 took 104 and 0.2 took 88 (history 5); 0.1 needed more line searches.
+    """
+
+    history: int = 10
+    max_line_search: int = 8
+    volume_weight: float = 0.2
+
+    def run(self, problem, x0, q0, threshold, max_iter):
+        evaluate, precondition = problem.evaluate, problem.precondition
+        m = self.history
+        phi0, g0, q0 = evaluate(x0, q0)
+        zeros = jnp.zeros((m,) + x0.shape, x0.dtype)
+
+        def direction(g, s_hist, y_hist, rho, count):
+            # Two-loop recursion. The history is kept in order (oldest first, newest last),
+            # so the loops unroll with static indices; unfilled slots are masked out.
+            valid = jnp.arange(m) >= m - jnp.minimum(count, m)
+            r, alphas = g, [None] * m
+            for j in reversed(range(m)):
+                alphas[j] = jnp.where(valid[j], rho[j] * jnp.sum(s_hist[j] * r), 0.0)
+                r = r - alphas[j] * y_hist[j]
+            r = precondition(r)
+            for j in range(m):
+                b = rho[j] * jnp.sum(y_hist[j] * r)
+                r = r + jnp.where(valid[j], alphas[j] - b, 0.0) * s_hist[j]
+            return -r
+
+        def cond(c):
+            g, k = c[2], c[7]
+            return (_norm(g) > threshold) & (k < max_iter)
+
+        def body(c):
+            x, phi, g, q, s_hist, y_hist, rho, k, count, evals = c
+            d = direction(g, s_hist, y_hist, rho, count)
+            slope = jnp.sum(g * d)
+            pd_step = -precondition(g)
+            d = jnp.where(slope < 0, d, pd_step)
+            slope = jnp.sum(g * d)
+
+            def ls_cond(lc):
+                step, phi_t, _, _, tries = lc
+                ok = phi_t <= phi + 1e-4 * step * slope + 1e-14 * jnp.abs(phi)
+                return (~ok) & (tries < self.max_line_search)
+
+            def ls_body(lc):
+                step, _, _, _, tries = lc
+                step = 0.5 * step
+                phi_t, g_t, q_t = evaluate(x + step * d, q)
+                return step, phi_t, g_t, q_t, tries + 1
+
+            phi_t, g_t, q_t = evaluate(x + d, q)
+            step, phi_t, g_t, q_t, tries = jax.lax.while_loop(
+                ls_cond, ls_body, (jnp.asarray(1.0, x.dtype), phi_t, g_t, q_t, jnp.asarray(0)))
+            failed = phi_t > phi + 1e-4 * step * slope + 1e-14 * jnp.abs(phi)
+            # Fallback: a plain PD step (always a descent step for exact projections).
+            phi_f, g_f, q_f = jax.lax.cond(failed, lambda: evaluate(x + pd_step, q), lambda: (phi_t, g_t, q_t))
+            x_new = jnp.where(failed, x + pd_step, x + step * d)
+            s = x_new - x
+            y = g_f - g
+            sy = jnp.sum(s * y)
+            store = sy > 1e-12 * jnp.sqrt(jnp.sum(s * s) * jnp.sum(y * y))
+            s_hist = jnp.where(store, jnp.concatenate([s_hist[1:], s[None]]), s_hist)
+            y_hist = jnp.where(store, jnp.concatenate([y_hist[1:], y[None]]), y_hist)
+            rho = jnp.where(store, jnp.append(rho[1:], 1.0 / jnp.where(store, sy, 1.0)), rho)
+            count = count + store.astype(count.dtype)
+            evals = evals + 1 + tries + failed.astype(k.dtype)
+            return x_new, phi_f, g_f, q_f, s_hist, y_hist, rho, k + 1, count, evals
+
+        zero = jnp.asarray(0)
+        init = (x0, phi0, g0, q0, zeros, zeros, jnp.zeros(m, x0.dtype), zero, zero, zero + 1)
+        x, _, g, q, _, _, _, k, _, evals = jax.lax.while_loop(cond, body, init)
+        return Solution(x, q, k, evals, _norm(g))
