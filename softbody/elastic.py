@@ -57,15 +57,16 @@ def scatter_stress(model, dminv: Array, stress: Array) -> Array:
     return jnp.zeros((model.n_vertices, 3), stress.dtype).at[jnp.asarray(model.mesh.tets)].add(per_vertex)
 
 
-def corotated(f: Array, r: Array, volume: Array, w_s: Array, w_v: Array) -> tuple[Array, Array]:
+def corotated(f: Array, r: Array, volume: Array, w_s: Array, w_v: Array, target=3.0) -> tuple[Array, Array]:
     """Corotated + volume energy per tet ``(t,)`` and its stress ``dE/dF`` ``(3, 3, t)``.
 
     Arguments:
         f: deformation gradients ``(3, 3, t)``; r: their rotations ``(3, 3, t)``;
         volume, w_s, w_v: ``(t,)``.
+        target: the volume term's target ``tr(R^T F)``: 3 (rest volume), or ``(t,)``.
     """
     d = f - r
-    c = rot.dot(r, f) - 3.0  # tr(R^T F) - 3
+    c = rot.dot(r, f) - target  # tr(R^T F) - target
     energy = volume * (0.5 * w_s * rot.dot(d, d) + w_v / 6.0 * c * c)
     stress = volume * (w_s * d + (w_v * c / 3.0) * r)
     return energy, stress

@@ -49,8 +49,9 @@ class Options:
             definition DiffPD uses, so iteration counts compare).
         atol: absolute force tolerance, N.
         max_iter: iteration cap per step; a step that hits it reports ``converged=False``.
-        method: the nonlinear iteration, :class:`~softbody.solvers.LBFGS` (default) or
-            :class:`~softbody.solvers.LocalGlobal` (plain PD).
+        method: the nonlinear iteration: :class:`~softbody.solvers.LBFGS` or
+            :class:`~softbody.solvers.LocalGlobal` (plain PD); ``None`` (default) picks
+            L-BFGS, or the contact solver when the scene has obstacles.
         linear_solver: a :class:`~softbody.linsolve.LinearSolver`; ``None`` picks by size.
         rotation_iterations: warm-started Newton steps of the rotation extraction per
             local step.
@@ -61,7 +62,7 @@ class Options:
     tol: float = 1e-4
     atol: float = 1e-10
     max_iter: int = 200
-    method: IterationMethod = field(default_factory=LBFGS)
+    method: IterationMethod | None = None
     linear_solver: linsolve.LinearSolver | None = None
     rotation_iterations: int = 1
 
@@ -86,6 +87,7 @@ class Params(eqx.Module):
             :class:`~softbody.material.Material`), in the order of ``Model.material_names``.
         morph: ``(n, 3)`` rest-shape offsets added to the mesh's rest positions.
         actuators: a tuple with one design-parameter pytree per actuator term.
+        obstacles: a tuple with one parameter pytree per obstacle (pose, friction, ...).
     """
 
     E: Array
@@ -95,14 +97,17 @@ class Params(eqx.Module):
     beta: Array
     morph: Array
     actuators: tuple = ()
+    obstacles: tuple = ()
 
 
 class State(eqx.Module):
-    """Simulation state: positions ``x`` and velocities ``v`` ``(n, 3)``, rotations ``rot`` ``(4, t)``."""
+    """Simulation state: positions ``x`` and velocities ``v`` ``(n, 3)``, rotations ``rot``
+    ``(4, t)`` (warm start of the local step) and the time ``t`` (s)."""
 
     x: Array
     v: Array
     rot: Array
+    t: Array
 
 
 @dataclass(frozen=True, eq=False)
@@ -118,8 +123,9 @@ class Model:
     pattern: linsolve.SparsityPattern
     local_to_data: np.ndarray  # (t*16,) int32 into pattern data; nnz = dropped
     diag_to_data: np.ndarray  # (n,) int32 positions of the diagonal entries
-    terms: tuple = ()  # actuator terms (see softbody.terms)
+    terms: tuple = ()  # actuator terms (see softbody.simulate for the term kinds)
     channel_names: tuple[str, ...] = ()
+    obstacles: tuple = ()  # obstacle objects (see softbody.contact)
 
     @property
     def n_vertices(self) -> int:
@@ -132,6 +138,17 @@ class Model:
     @property
     def n_channels(self) -> int:
         return len(self.channel_names)
+
+    @property
+    def method(self) -> IterationMethod:
+        """The nonlinear iteration in use (``options.method`` or the default for the scene)."""
+        if self.options.method is not None:
+            return self.options.method
+        if self.obstacles:
+            from softbody.contact import ContactPD
+
+            return ContactPD()
+        return LBFGS()
 
     @property
     def linear_solver(self) -> linsolve.LinearSolver:
@@ -194,6 +211,7 @@ def build(
     fixed: str | Sequence[int] | Callable | None = None,
     options: Options = Options(),
     actuators: Sequence = (),
+    obstacles: Sequence = (),
 ) -> tuple[Model, Params]:
     """Compile a scene.
 
@@ -205,6 +223,7 @@ def build(
             ``points (n, 3) -> bool mask (n,)``, or ``None`` for a free body.
         options: :class:`Options`.
         actuators: actuator terms (see :mod:`softbody.actuators`).
+        obstacles: obstacles for contact and friction (see :mod:`softbody.contact`).
 
     Returns:
         ``(model, params)``.
@@ -246,7 +265,7 @@ def build(
         mesh=mesh, options=options, material_names=names, tet_material=tet_material,
         fixed=fixed_idx, free_mask=free.astype(np.float64)[:, None], pattern=pattern,
         local_to_data=local_to_data, diag_to_data=diag_to_data, terms=terms,
-        channel_names=tuple(channels),
+        channel_names=tuple(channels), obstacles=tuple(obstacles),
     )
     params = Params(
         E=jnp.asarray([m.E for m in mats], jnp.float64),
@@ -256,6 +275,7 @@ def build(
         beta=jnp.asarray([m.beta for m in mats], jnp.float64),
         morph=jnp.zeros((n, 3), jnp.float64),
         actuators=tuple(term.init_params() for term in terms),
+        obstacles=tuple(ob.init_params() for ob in obstacles),
     )
     return model, params
 
@@ -287,7 +307,7 @@ def initial_state(model: Model, params: Params | None = None, x=None, v=None) ->
 
     dminv, _ = rest_geometry(model, params.morph if params is not None else jnp.zeros((n, 3)))
     f = deformation_gradient(model, dminv, x)
-    return State(x=x, v=v, rot=rotation.cold_start(f))
+    return State(x=x, v=v, rot=rotation.cold_start(f), t=jnp.asarray(0.0))
 
 
 class Prepared(eqx.Module):
@@ -302,6 +322,7 @@ class Prepared(eqx.Module):
     w_b: Array  # (t,) stiffness damping weight beta * 2 mu
     x_rest: Array  # (n, 3)
     terms: tuple  # per-term prepared data
+    obstacles: tuple  # per-obstacle parameters (Params.obstacles)
     data: Array  # (nnz,) PD matrix values
     factor: object  # linear-solver factor
     inertia: Array  # scalar: 1/h^2 for dynamics, 0 for statics
@@ -331,19 +352,21 @@ def prepare(model: Model, params: Params, *, static: bool = False) -> Prepared:
     x_rest = jnp.asarray(model.mesh.points) + params.morph
 
     if static:
-        inertia, weight = jnp.asarray(0.0), w_s + model.options.method.volume_weight * w_v
+        inertia, weight = jnp.asarray(0.0), w_s + model.method.volume_weight * w_v
         diag_mass = jnp.zeros_like(mass)
     else:
-        inertia, weight = jnp.asarray(1.0 / h**2), w_s + model.options.method.volume_weight * w_v + w_b / h
+        inertia, weight = jnp.asarray(1.0 / h**2), w_s + model.method.volume_weight * w_v + w_b / h
         diag_mass = mass / h**2 + mass_alpha / h
     local = local_matrices(dminv, volume * weight)  # (t, 4, 4)
     term_prep = tuple(term.prepare(model, p, dminv, volume) for term, p in zip(model.terms, params.actuators))
     for tp in term_prep:
-        local = local.at[tp.tets].add(tp.local_matrices)
+        if getattr(tp, "local_matrices", None) is not None:
+            local = local.at[tp.tets].add(tp.local_matrices)
     nnz = len(model.pattern.rows)
     data = jnp.zeros(nnz + 1).at[model.local_to_data].add(local.reshape(-1))[:nnz]
     data = data.at[model.diag_to_data].add(diag_mass)
     factor = model.linear_solver.factorize(model.pattern, data)
     return Prepared(dminv=dminv, volume=volume, mass=mass[:, None], mass_alpha=mass_alpha[:, None],
-                    w_s=w_s, w_v=w_v, w_b=w_b, x_rest=x_rest, terms=term_prep, data=data,
+                    w_s=w_s, w_v=w_v, w_b=w_b, x_rest=x_rest, terms=term_prep,
+                    obstacles=tuple(params.obstacles), data=data,
                     factor=factor, inertia=inertia)

@@ -9,6 +9,20 @@ and actuator energies and ``D`` the strain-rate damping; then ``v_{n+1} = (x_{n+
 The step stops when ``|grad Phi| <= tol |M s / h^2| + atol`` over the free degrees of
 freedom or after ``max_iter`` iterations, and reports its iteration count and residual.
 
+Actuator terms (``model.terms``) come in three kinds, told apart by the methods they have:
+
+* ``energy_and_stress(F_sub, prep, a) -> (energy (m,), dE/dF (3, 3, m))`` on the tets
+  ``prep.tets``: PD-style element terms (muscles); their PD matrix blocks
+  ``prep.local_matrices`` ``(m, 4, 4)`` are added to the prefactored matrix.
+* ``energy_and_gradient(x, prep, a) -> (energy, dE/dx (n, 3))``: vertex terms (cavity
+  pressure as ``-p V_cavity(x)``); they leave the matrix alone (``prep.local_matrices``
+  is ``None``).
+* ``volume_targets(prep, a) -> (tets (m,), s (m,))``: the volume term of those tets
+  targets ``tr(R^T F) = 3 s`` instead of 3 (pneumatic cells: ``s = a^(1/3)``).
+
+Every term also has ``channel_names``, ``init_params()`` and
+``prepare(model, params, dminv, volume)``.
+
 Controls have one layout: an array ``(n_steps, n_channels)`` of actuator activations in
 the order of ``model.channel_names`` (each actuator term's channels, in the order the
 terms were given to :func:`softbody.model.build`). External forces are a separate
@@ -72,24 +86,36 @@ def _objective(model: Model, prep: Prepared, x_n, v_n, q_n, activation, force, *
     r_n = rot.quat_to_mat(q_n)
     iters = model.options.rotation_iterations
 
+    # Each term's slice of the activation vector, and the volume targets (fixed per step).
+    slices, offset = [], 0
+    for term in model.terms:
+        slices.append(activation[offset:offset + len(term.channel_names)])
+        offset += len(term.channel_names)
+    target = 3.0
+    for term, tp, a in zip(model.terms, prep.terms, slices):
+        if hasattr(term, "volume_targets"):
+            idx, s_t = term.volume_targets(tp, a)
+            target = (jnp.full(model.n_tets, 3.0) if isinstance(target, float) else target).at[idx].set(3.0 * s_t)
+
     def evaluate(x, q):
         f = deformation_gradient(model, prep.dminv, x)
         r, q = rot.rotation(f, q, iters)
-        energy, stress = corotated(f, r, prep.volume, prep.w_s, prep.w_v)
+        energy, stress = corotated(f, r, prep.volume, prep.w_s, prep.w_v, target)
         energy = jnp.sum(energy)
         if damped:
             e_d, s_d = strain_rate_damping(f, f_n, r_n, prep.volume, prep.w_b, h)
             energy, stress = energy + jnp.sum(e_d), stress + s_d
-        offset = 0
-        for term, tp in zip(model.terms, prep.terms):
-            c = len(term.channel_names)
-            a = activation[offset:offset + c]
-            offset += c
-            idx = jnp.asarray(tp.tets)
-            e_t, s_t = term.energy_and_stress(f[:, :, idx], tp, a)
-            energy = energy + jnp.sum(e_t)
-            stress = stress.at[:, :, idx].add(s_t)
-        grad = scatter_stress(model, prep.dminv, stress)
+        vertex_grad = 0.0
+        for term, tp, a in zip(model.terms, prep.terms, slices):
+            if hasattr(term, "energy_and_stress"):
+                idx = jnp.asarray(tp.tets)
+                e_t, s_t = term.energy_and_stress(f[:, :, idx], tp, a)
+                energy = energy + jnp.sum(e_t)
+                stress = stress.at[:, :, idx].add(s_t)
+            if hasattr(term, "energy_and_gradient"):
+                e_t, g_t = term.energy_and_gradient(x, tp, a)
+                energy, vertex_grad = energy + e_t, vertex_grad + g_t
+        grad = scatter_stress(model, prep.dminv, stress) + vertex_grad
         if static:
             phi = energy - jnp.sum(load * x)
             grad = grad - load
@@ -114,10 +140,11 @@ def _solve(model: Model, prep: Prepared, state: State, activation, force, *, sta
         precondition=lambda g: solver.solve(pattern, prep.factor, g),
         matvec=lambda x: pattern.matvec(prep.data, x),
         diagonal=prep.data[jnp.asarray(model.diag_to_data)][:, None],
-        x_n=state.x, v_n=state.v, mass=prep.mass, free=free, dt=0.0 if static else opts.dt)
+        x_n=state.x, v_n=state.v, mass=prep.mass, free=free, dt=0.0 if static else opts.dt,
+        time=state.t, obstacles=tuple(zip(model.obstacles, prep.obstacles)))
     threshold = opts.tol * scale + opts.atol
     x0 = state.x if static else jnp.where(free > 0, state.x + opts.dt * state.v, state.x)
-    sol = opts.method.run(problem, x0, state.rot, threshold, opts.max_iter)
+    sol = model.method.run(problem, x0, state.rot, threshold, opts.max_iter)
     info = StepInfo(iterations=sol.iterations, evaluations=sol.evaluations,
                     residual=sol.gnorm / (scale + opts.atol / opts.tol),
                     converged=sol.gnorm <= threshold)
@@ -144,7 +171,7 @@ def step(model: Model, prep: Prepared, state: State, activation=None, force=None
     """
     sol, info = _solve(model, prep, state, _activation(model, activation), force, static=False)
     v = (sol.x - state.x) / model.options.dt
-    return State(x=sol.x, v=v, rot=sol.q), info
+    return State(x=sol.x, v=v, rot=sol.q, t=state.t + model.options.dt), info
 
 
 def _check_controls(model: Model, controls, forces, n_steps):

@@ -41,6 +41,8 @@ class StepProblem(NamedTuple):
         mass: ``(n, 1)`` lumped masses.
         free: ``(n, 1)`` 1 on free vertices, 0 on fixed ones.
         dt: the time step (0 for static solves).
+        time: the time at the start of the step, s.
+        obstacles: ``((obstacle, obstacle_params), ...)`` of the scene.
     """
 
     evaluate: Callable
@@ -52,6 +54,8 @@ class StepProblem(NamedTuple):
     mass: Array
     free: Array
     dt: float
+    time: Array
+    obstacles: tuple = ()
 
 
 class Solution(NamedTuple):
