@@ -24,9 +24,9 @@ pytree of arrays: it may be carried through ``lax.scan``/``lax.while_loop``, ret
 =================  ====================  =====  ===  ===============================
 solver             runs                  vmap   GPU  use it for
 =================  ====================  =====  ===  ===============================
-SparseCholesky     host (cholespy)       yes*   no   CPU, n >~ 1k (the default there)
+SparseCholesky     host (cholespy)       yes*   no   CPU, n >~ 400 (the default there)
 SparseLU           host (scipy splu)     yes*   no    CPU when cholespy is missing
-DenseCholesky      JAX (LAPACK/cuSOLVER) yes    yes  n <~ 1k; any size on a GPU that
+DenseCholesky      JAX (LAPACK/cuSOLVER) yes    yes  n <~ 400; any size on a GPU that
                                                      holds the n x n matrix
 PCG                JAX (while_loop)      yes    yes  GPU, vmap over many matrices,
                                                      matrices that change every step
@@ -90,10 +90,10 @@ __all__ = [
     "set_factor_cache_capacity",
 ]
 
-#: Largest ``n`` for which :func:`auto_solver` picks :class:`DenseCholesky` (measured with
-#: ``softbody bench solvers``: dense and sparse Cholesky tie near n = 500; from ~2k on the
-#: sparse factorisation is several times faster per solve).
-DENSE_MAX_N = 1000
+#: Largest ``n`` for which :func:`auto_solver` picks :class:`DenseCholesky`. Measured on a
+#: 2-core CPU (``softbody bench solvers``, 3 right-hand sides): per solve, dense 0.04 ms vs
+#: cholespy 0.08 ms at n = 256, 0.14 vs 0.09 ms at n = 500, 4.5 vs 0.22 ms at n = 2048.
+DENSE_MAX_N = 400
 
 
 # --------------------------------------------------------------------------- pattern
@@ -452,7 +452,7 @@ class DenseCholesky(LinearSolver):
     """Dense Cholesky factorisation in JAX (``jax.scipy.linalg.cho_factor``).
 
     Builds the ``n x n`` matrix, so memory is ``8 n^2`` bytes and factorisation
-    ``n^3 / 3`` flops: the fastest choice on CPU below ``n ~ 1000``, and on a GPU as long
+    ``n^3 / 3`` flops: the fastest choice on CPU below ``n ~ 400``, and on a GPU as long
     as the matrix fits. Works under ``vmap`` and on any backend.
 
     Raises (at run time, from ``factorize``, also under ``jit``): an error saying the
@@ -821,7 +821,7 @@ def _refactorize_callback(solver: _HostSolver, pattern: SparsityPattern, handle,
 class SparseCholesky(_HostSolver):
     """Prefactored sparse Cholesky on the host (cholespy, i.e. CHOLMOD), float64.
 
-    The fastest solver on CPU from ``n ~ 1000`` up. ``factorize`` costs seconds at
+    The fastest solver on CPU from ``n ~ 400`` up. ``factorize`` costs seconds at
     ``n = 30k``; each solve is two sparse triangular solves plus a host callback
     (about 0.05-0.15 ms). Under ``vmap`` each batch member is factorised separately
     (keep the batch within :func:`set_factor_cache_capacity`), and members sharing one
@@ -892,11 +892,12 @@ class SparseLU(_HostSolver):
 def auto_solver(n: int) -> LinearSolver:
     """The default linear solver for an ``n x n`` PD matrix on CPU.
 
-    :class:`DenseCholesky` up to ``DENSE_MAX_N`` (dense and sparse Cholesky tie near
-    ``n = 500`` and dense stays within a few tenths of a millisecond below it, while it
-    also works under ``vmap`` without host round trips), :class:`SparseCholesky` above
-    (:class:`SparseLU` when cholespy is missing). Measured with ``softbody bench solvers``.
-    On a GPU, choose :class:`DenseCholesky` or :class:`PCG` yourself.
+    :class:`DenseCholesky` up to ``DENSE_MAX_N`` = 400, :class:`SparseCholesky` above
+    (:class:`SparseLU` when cholespy is missing). The threshold is where the two tie per
+    solve on a 2-core CPU (``softbody bench solvers``): below it the host callback's
+    ~0.07 ms overhead outweighs the dense solve's ``O(n^2)``; above it dense loses fast
+    (20x slower at n = 2048, and its ``n^3`` factorisation takes seconds from n ~ 8k).
+    Not measured on GPUs: there, choose :class:`DenseCholesky` or :class:`PCG` yourself.
 
     Arguments:
         n: matrix size.

@@ -171,7 +171,7 @@ def test_many_solves_in_jitted_scan_share_one_factorisation(system, name):
 
 @solver_names
 def test_gradients_match_central_differences(system, name):
-    """d/d b and d/d data (reverse and forward mode), through a scan of solves."""
+    """d/d b and d/d data (reverse and forward mode), through a rematerialised scan of solves."""
     pattern, data, b, x = system
     solver = SOLVERS[name]
     weights = np.random.default_rng(2).standard_normal(b.shape)
@@ -181,6 +181,7 @@ def test_gradients_match_central_differences(system, name):
     def loss(data, b):
         factor = solver.factorize(pattern, data)
 
+        @jax.checkpoint  # as the simulator does: solves are recomputed in the backward pass
         def step(x, _):
             return solver.solve(pattern, factor, b + c * x), None
 

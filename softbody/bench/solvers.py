@@ -2,7 +2,7 @@
 
 The matrices are PD global-step matrices ``M/h^2 + sum_e w vol_e G_e G_e^T`` of structured
 tet grids (a 4:1:1 beam of hex cells, each split into 6 tets; no vertices fixed), with
-``n`` = 500, 2048, 8112 and 30400 vertices (``quick``: the two smallest). For each solver
+``n`` = 256, 500, 2048, 8112 and 30400 vertices (``quick``: up to 2048). For each solver
 in :mod:`softbody.linsolve` it measures
 
 - the time per solve of 3 right-hand sides (float64) inside a jitted ``lax.scan`` of many
@@ -36,8 +36,9 @@ import numpy as np
 
 from softbody import linsolve
 
-#: vertices per axis of the benchmark grids (n = 500, 2048, 8112, 30400)
-GRID_SHAPES = ((20, 5, 5), (32, 8, 8), (48, 13, 13), (76, 20, 20))
+#: vertices per axis of the benchmark grids (n = 256, 500, 2048, 8112, 30400); the smallest
+#: brackets the size where dense and sparse Cholesky tie
+GRID_SHAPES = ((16, 4, 4), (20, 5, 5), (32, 8, 8), (48, 13, 13), (76, 20, 20))
 
 #: largest dense matrix (with Cholesky workspace, about three n x n float64 arrays) timed
 DENSE_MEMORY_LIMIT = 4e9
@@ -179,11 +180,7 @@ def _cholespy_solve_time(factor, b) -> float:
     """Seconds per solve of cholespy alone (no JAX), for the callback-overhead figure."""
     solve = linsolve._CACHE.get(int(factor.aux))
     rhs = np.array(b)
-    repeats = 20
-    start = time.perf_counter()
-    for _ in range(repeats):
-        solve(rhs)
-    return (time.perf_counter() - start) / repeats
+    return _timed(lambda: solve(rhs), budget_s=2.0, repeats=50)
 
 
 def _measure(solver, pattern, values: np.ndarray, b: jax.Array) -> dict:
@@ -211,14 +208,14 @@ def run(out: Path, quick: bool) -> dict:
 
     Arguments:
         out: output directory (exists).
-        quick: time only the two smallest matrices.
+        quick: time only the matrices up to n = 2048.
 
     Returns:
         ``{"sizes", "grid_shapes", "per_solve_ms", "factorize_s", "relative_residual",
         "callback_overhead_ms", "auto_choice", "openblas_num_threads"}``; per-solver lists
         follow ``sizes``, with ``None`` where a solver was skipped.
     """
-    shapes = GRID_SHAPES[:2] if quick else GRID_SHAPES
+    shapes = GRID_SHAPES[:3] if quick else GRID_SHAPES
     solvers = _solvers()
     sizes = [int(np.prod(s)) for s in shapes]
     per_solve = {name: [] for name in solvers}
