@@ -709,7 +709,14 @@ class _HostSolver(LinearSolver):
             raise ValueError(f"{name}: the matrix values contain NaN or inf")
         if _asymmetry(pattern, data, np):
             raise ValueError(f"{name}: {_ASYMMETRIC}")
-        return self._factor_on_host(pattern, data)
+        solve = self._factor_on_host(pattern, data)
+        lock = threading.Lock()  # XLA may run independent callbacks on several threads
+
+        def locked_solve(b):
+            with lock:
+                return solve(b)
+
+        return locked_solve
 
     def factorize(self, pattern: SparsityPattern, data) -> Factor:
         data = _check_data(self, pattern, data)
