@@ -34,6 +34,8 @@ time step, ``x_n`` the positions at the start of the step):
 * stiffness-proportional ``beta`` [s]: ``beta / (2 h) * V w_s * |sym(R_n^T (F - F_n))|^2``,
   the corotated strain-rate energy. It vanishes for rigid motion (to first order) and is
   a PD term whose projection (onto ``{R_n W : W skew}``, a linear subspace) is exact.
+  A scene pays for it only if some material had ``beta > 0`` when it was built (so the
+  gradient with respect to ``beta`` needs a positive starting value).
 
 Mass is lumped: each tet gives a quarter of ``density * V`` to each of its vertices.
 """

@@ -27,6 +27,7 @@ import numpy as np
 from softbody import linsolve, rotation
 from softbody.material import Material, pd_weights
 from softbody.meshing import TetMesh
+from softbody.gradients import Adjoint, Implicit
 from softbody.solvers import LBFGS, IterationMethod
 
 Array = jax.Array
@@ -55,6 +56,8 @@ class Options:
         linear_solver: a :class:`~softbody.linsolve.LinearSolver`; ``None`` picks by size.
         rotation_iterations: warm-started Newton steps of the rotation extraction per
             local step.
+        adjoint: how gradients are taken: :class:`~softbody.gradients.Implicit` (default)
+            or :class:`~softbody.gradients.Unrolled`.
     """
 
     dt: float = 0.01
@@ -65,6 +68,7 @@ class Options:
     method: IterationMethod | None = None
     linear_solver: linsolve.LinearSolver | None = None
     rotation_iterations: int = 1
+    adjoint: Adjoint = field(default_factory=Implicit)
 
     def __post_init__(self):
         if not (np.isfinite(self.dt) and self.dt > 0):
@@ -126,6 +130,7 @@ class Model:
     terms: tuple = ()  # actuator terms (see softbody.simulate for the term kinds)
     channel_names: tuple[str, ...] = ()
     obstacles: tuple = ()  # obstacle objects (see softbody.contact)
+    stiffness_damping: bool = False  # some material had beta > 0 at build time
 
     @property
     def n_vertices(self) -> int:
@@ -266,6 +271,7 @@ def build(
         fixed=fixed_idx, free_mask=free.astype(np.float64)[:, None], pattern=pattern,
         local_to_data=local_to_data, diag_to_data=diag_to_data, terms=terms,
         channel_names=tuple(channels), obstacles=tuple(obstacles),
+        stiffness_damping=any(m.beta > 0 for m in mats),
     )
     params = Params(
         E=jnp.asarray([m.E for m in mats], jnp.float64),

@@ -38,10 +38,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from softbody import rotation as rot
-from softbody.elastic import corotated, deformation_gradient, scatter_stress, strain_rate_damping
+from softbody.gradients import segment_length
 from softbody.model import Model, Params, Prepared, SceneError, State, prepare
-from softbody.solvers import StepProblem
+from softbody.objective import StepInfo
 
 Array = jax.Array
 
@@ -50,105 +49,12 @@ class SimulationError(RuntimeError):
     """The simulation produced non-finite values; the message names the step and quantity."""
 
 
-class StepInfo(eqx.Module):
-    """Per-step solver statistics (arrays; stacked over steps in a rollout)."""
-
-    iterations: Array
-    evaluations: Array
-    residual: Array  # |grad Phi| / (|M s / h^2| + atol / tol): the relative residual reached
-    converged: Array
-
-
 class Trajectory(eqx.Module):
     """A rollout: positions and velocities ``(n_steps + 1, n, 3)`` and per-step :class:`StepInfo`."""
 
     x: Array
     v: Array
     info: StepInfo
-
-
-def _objective(model: Model, prep: Prepared, x_n, v_n, q_n, activation, force, *, static: bool):
-    """The step objective's ``evaluate`` and its convergence scale."""
-    h = model.options.dt
-    gravity = jnp.asarray(model.options.gravity)
-    free = jnp.asarray(model.free_mask)
-    mass = prep.mass
-    load = mass * gravity + (0.0 if force is None else force)
-    if static:
-        s = x_n
-        scale = jnp.sqrt(jnp.sum((load * free) ** 2))
-    else:
-        s = x_n + h * v_n + h * h * load / jnp.maximum(mass, 1e-300)
-        s = jnp.where(free > 0, s, x_n)
-        scale = jnp.sqrt(jnp.sum((mass * s * free) ** 2)) / h**2
-    damped = not static
-    f_n = deformation_gradient(model, prep.dminv, x_n)
-    r_n = rot.quat_to_mat(q_n)
-    iters = model.options.rotation_iterations
-
-    # Each term's slice of the activation vector, and the volume targets (fixed per step).
-    slices, offset = [], 0
-    for term in model.terms:
-        slices.append(activation[offset:offset + len(term.channel_names)])
-        offset += len(term.channel_names)
-    target = 3.0
-    for term, tp, a in zip(model.terms, prep.terms, slices):
-        if hasattr(term, "volume_targets"):
-            idx, s_t = term.volume_targets(tp, a)
-            target = (jnp.full(model.n_tets, 3.0) if isinstance(target, float) else target).at[idx].set(3.0 * s_t)
-
-    def evaluate(x, q):
-        f = deformation_gradient(model, prep.dminv, x)
-        r, q = rot.rotation(f, q, iters)
-        energy, stress = corotated(f, r, prep.volume, prep.w_s, prep.w_v, target)
-        energy = jnp.sum(energy)
-        if damped:
-            e_d, s_d = strain_rate_damping(f, f_n, r_n, prep.volume, prep.w_b, h)
-            energy, stress = energy + jnp.sum(e_d), stress + s_d
-        vertex_grad = 0.0
-        for term, tp, a in zip(model.terms, prep.terms, slices):
-            if hasattr(term, "energy_and_stress"):
-                idx = jnp.asarray(tp.tets)
-                e_t, s_t = term.energy_and_stress(f[:, :, idx], tp, a)
-                energy = energy + jnp.sum(e_t)
-                stress = stress.at[:, :, idx].add(s_t)
-            if hasattr(term, "energy_and_gradient"):
-                e_t, g_t = term.energy_and_gradient(x, tp, a)
-                energy, vertex_grad = energy + e_t, vertex_grad + g_t
-        grad = scatter_stress(model, prep.dminv, stress) + vertex_grad
-        if static:
-            phi = energy - jnp.sum(load * x)
-            grad = grad - load
-        else:
-            dx, dn = x - s, x - x_n
-            phi = (energy + 0.5 * jnp.sum(mass * dx * dx) / h**2
-                   + 0.5 * jnp.sum(prep.mass_alpha * dn * dn) / h)
-            grad = grad + mass * dx / h**2 + prep.mass_alpha * dn / h
-        return phi, grad * free, q
-
-    return evaluate, scale
-
-
-def _solve(model: Model, prep: Prepared, state: State, activation, force, *, static: bool):
-    evaluate, scale = _objective(model, prep, state.x, state.v, state.rot, activation, force, static=static)
-    solver = model.linear_solver
-    pattern = model.pattern
-    opts = model.options
-    free = jnp.asarray(model.free_mask)
-    problem = StepProblem(
-        evaluate=evaluate,
-        precondition=lambda g: solver.solve(pattern, prep.factor, g),
-        matvec=lambda x: pattern.matvec(prep.data, x),
-        diagonal=prep.data[jnp.asarray(model.diag_to_data)][:, None],
-        x_n=state.x, v_n=state.v, mass=prep.mass, free=free, dt=0.0 if static else opts.dt,
-        time=state.t, obstacles=tuple(zip(model.obstacles, prep.obstacles)))
-    threshold = opts.tol * scale + opts.atol
-    x0 = state.x if static else jnp.where(free > 0, state.x + opts.dt * state.v, state.x)
-    sol = model.method.run(problem, x0, state.rot, threshold, opts.max_iter)
-    info = StepInfo(iterations=sol.iterations, evaluations=sol.evaluations,
-                    residual=sol.gnorm / (scale + opts.atol / opts.tol),
-                    converged=sol.gnorm <= threshold)
-    return sol, info
 
 
 def _activation(model: Model, activation):
@@ -169,7 +75,7 @@ def step(model: Model, prep: Prepared, state: State, activation=None, force=None
     Returns:
         ``(next_state, info)``.
     """
-    sol, info = _solve(model, prep, state, _activation(model, activation), force, static=False)
+    sol, info = model.options.adjoint.solve(model, prep, state, _activation(model, activation), force, static=False)
     v = (sol.x - state.x) / model.options.dt
     return State(x=sol.x, v=v, rot=sol.q, t=state.t + model.options.dt), info
 
@@ -203,14 +109,27 @@ def _rollout(model: Model, params: Params, state0: State, controls, forces, n_st
     def body(carry, inputs):
         state, bad = carry
         a, f = inputs
-        a = _activation(model, a)
-        new, info = step(model, prep, state, a, f)
+        new, info = step(model, prep, state, _activation(model, a), f)
         finite = jnp.all(jnp.isfinite(new.x)) & jnp.all(jnp.isfinite(new.v))
         new = jax.tree.map(lambda n, o: jnp.where(bad, o, n), new, state)
         return (new, bad | ~finite), (new.x, new.v, info, bad | ~finite)
 
-    (_, _), (xs, vs, info, bad) = jax.lax.scan(body, (state0, jnp.asarray(False)), (controls, forces),
-                                               length=n_steps)
+    inputs = (controls, forces)
+    carry = (state0, jnp.asarray(False))
+    if model.options.adjoint.segment_checkpoints and n_steps > 3:
+        # Nested scans: the outer one keeps only segment-start states; each segment is
+        # rematerialised in the backward pass (O(sqrt(n_steps)) states in memory).
+        k = segment_length(n_steps)
+        segments = jax.tree.map(lambda a: a.reshape((n_steps // k, k) + a.shape[1:]), inputs)
+
+        @jax.checkpoint
+        def segment(carry, seg_inputs):
+            return jax.lax.scan(body, carry, seg_inputs, length=k)
+
+        _, (xs, vs, info, bad) = jax.lax.scan(segment, carry, segments, length=n_steps // k)
+        xs, vs, info, bad = jax.tree.map(lambda a: a.reshape((n_steps,) + a.shape[2:]), (xs, vs, info, bad))
+    else:
+        _, (xs, vs, info, bad) = jax.lax.scan(body, carry, inputs, length=n_steps)
     xs = jnp.concatenate([state0.x[None], xs])
     vs = jnp.concatenate([state0.v[None], vs])
     return Trajectory(x=xs, v=vs, info=info), bad
@@ -282,5 +201,5 @@ def _solve_static(model, params, force, activation, x0):
 
     prep = prepare(model, params, static=True)
     state = initial_state(model, params, x=x0)
-    sol, info = _solve(model, prep, state, activation, force, static=True)
+    sol, info = model.options.adjoint.solve(model, prep, state, activation, force, static=True)
     return sol.x, info
