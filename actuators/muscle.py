@@ -13,8 +13,9 @@ convergence holds), and the term's PD matrix ``V k w (G m)(G m)^T`` does not dep
 Activations outside [0, 1] are clipped (their gradient is zero there).
 
 Design parameters (differentiable, in ``Params.actuators``): the stiffness ``k`` (one per
-muscle term) and the per-tet fibre weights ``w`` (``(m,)``, 1 by default), which the
-co-design API optimises to place muscles. Changing them changes the PD matrix, which is
+muscle term) and the per-tet fibre weights ``w`` (``(m,)``, 1 by default, or the
+``weights`` a term is made with, e.g. the distance falloff of :meth:`Muscle.from_polyline`),
+which the co-design API optimises to place muscles. Changing them changes the PD matrix, which is
 refactorised once per rollout.
 """
 
@@ -56,9 +57,11 @@ class Muscle:
         channel: ``(m,)`` index of each tet's channel in ``channel_names``.
         channel_names: the control channels this term reads, in order.
         stiffness: initial fibre stiffness ``k``, Pa.
+        weights: ``(m,)`` initial fibre weights ``w`` (>= 0), or ``None`` for ones.
 
     Raises:
-        ValueError: empty channels, zero fibre directions, mismatched shapes.
+        ValueError: empty channels, zero fibre directions, mismatched shapes, negative or
+            non-finite weights.
     """
 
     tets: np.ndarray
@@ -66,6 +69,7 @@ class Muscle:
     channel: np.ndarray
     channel_names: tuple[str, ...]
     stiffness: float = 1e5
+    weights: np.ndarray | None = None
 
     def __post_init__(self):
         tets = np.asarray(self.tets, np.int32).ravel()
@@ -88,6 +92,13 @@ class Muscle:
         object.__setattr__(self, "fibres", fibres / norms[:, None])
         object.__setattr__(self, "channel", channel)
         object.__setattr__(self, "channel_names", tuple(self.channel_names))
+        if self.weights is not None:
+            weights = np.asarray(self.weights, np.float64).ravel()
+            if weights.shape != tets.shape:
+                raise ValueError(f"muscle weights ({weights.size}) need one value per tet ({len(tets)})")
+            if not (np.all(np.isfinite(weights)) and np.all(weights >= 0)):
+                raise ValueError("muscle weights must be finite and >= 0")
+            object.__setattr__(self, "weights", weights)
 
     @classmethod
     def from_regions(cls, mesh, regions: Sequence[str], fibre=(1.0, 0.0, 0.0), stiffness: float = 1e5) -> "Muscle":
@@ -120,8 +131,64 @@ class Muscle:
             fibres = np.broadcast_to(np.asarray(fibre, float), (len(tets), 3))
         return cls(tets, fibres, np.concatenate(channel), tuple(regions), stiffness)
 
+    @classmethod
+    def from_polyline(cls, mesh, polyline, radius: float, stiffness: float = 1e5, falloff: str = "smooth",
+                      name: str = "muscle") -> "Muscle":
+        """A muscle along a path: one channel, fibres along the path, weights fading with distance.
+
+        Every tet whose centroid lies within ``radius`` of the polyline joins the muscle;
+        its fibre is the direction of the nearest segment and its initial weight
+        ``w = phi(d / radius)`` depends on the centroid's distance ``d`` to the path:
+
+        * ``"smooth"``: ``phi(r) = (1 - r^2)^2`` (smooth, zero at the rim);
+        * ``"linear"``: ``phi(r) = 1 - r``;
+        * ``"none"``: ``phi(r) = 1`` (a uniform tube).
+
+        Arguments:
+            mesh: the :class:`~softbody.meshing.TetMesh`.
+            polyline: ``(k, 3)`` path points in metres, ``k >= 2``, consecutive points distinct.
+            radius: the muscle's radius around the path, m (> 0).
+            stiffness: fibre stiffness ``k``, Pa.
+            falloff: ``"smooth"``, ``"linear"`` or ``"none"``.
+            name: the channel's name.
+
+        Returns:
+            A :class:`Muscle` with one channel, ``name``.
+
+        Raises:
+            ValueError: a bad polyline, radius or falloff, or no tet within ``radius``.
+        """
+        profiles = {"smooth": lambda r: (1.0 - r * r) ** 2, "linear": lambda r: 1.0 - r,
+                    "none": lambda r: np.ones_like(r)}
+        if falloff not in profiles:
+            raise ValueError(f"falloff must be one of {sorted(profiles)}, got {falloff!r}")
+        path = np.asarray(polyline, np.float64)
+        if path.ndim != 2 or path.shape[1] != 3 or len(path) < 2 or not np.all(np.isfinite(path)):
+            raise ValueError(f"polyline must be finite points of shape (k, 3) with k >= 2, got {path.shape}")
+        seg = np.diff(path, axis=0)  # (k-1, 3)
+        length = np.linalg.norm(seg, axis=1)
+        if np.any(length <= 1e-12 * max(1.0, float(np.abs(path).max()))):
+            raise ValueError("polyline has repeated consecutive points (zero-length segments)")
+        if not (np.isfinite(radius) and radius > 0):
+            raise ValueError(f"muscle radius must be a positive number of metres, got {radius}")
+        centroid = np.asarray(mesh.points)[np.asarray(mesh.tets)].mean(axis=1)  # (t, 3)
+        # Distance from every centroid to every segment (closest point, clamped to the ends).
+        rel = centroid[:, None, :] - path[None, :-1, :]  # (t, k-1, 3)
+        u = np.clip(np.einsum("tsi,si->ts", rel, seg) / length**2, 0.0, 1.0)
+        dist = np.linalg.norm(rel - u[..., None] * seg[None], axis=2)  # (t, k-1)
+        nearest = dist.argmin(axis=1)
+        d = dist[np.arange(len(centroid)), nearest]
+        tets = np.flatnonzero(d < radius)
+        if len(tets) == 0:
+            raise ValueError(f"no tet centroid lies within radius {radius} m of the polyline "
+                             f"(the closest is {d.min():.3g} m away); widen the radius or move the path")
+        fibres = seg[nearest[tets]] / length[nearest[tets], None]
+        weights = profiles[falloff](d[tets] / radius)
+        return cls(tets, fibres, np.zeros(len(tets)), (name,), stiffness, weights)
+
     def init_params(self) -> MuscleParams:
-        return MuscleParams(stiffness=jnp.asarray(float(self.stiffness)), weights=jnp.ones(len(self.tets)))
+        weights = jnp.ones(len(self.tets)) if self.weights is None else jnp.asarray(self.weights)
+        return MuscleParams(stiffness=jnp.asarray(float(self.stiffness)), weights=weights)
 
     def prepare(self, model, p: MuscleParams, dminv: Array, volume: Array) -> MusclePrep:
         """Per-rollout data: PD matrix blocks ``(m, 4, 4)`` and coefficients."""
