@@ -40,11 +40,11 @@ class MuscleParams(eqx.Module):
 
 
 class MusclePrep(eqx.Module):
-    tets: np.ndarray = eqx.field(static=True)
+    tets: Array  # (m,) int element indices
     local_matrices: Array  # (m, 4, 4)
     coef: Array  # (m,) V k w
     fibre: Array  # (3, m)
-    channel: np.ndarray = eqx.field(static=True)
+    channel: Array  # (m,) int channel of each tet
 
 
 @dataclass(frozen=True, eq=False)
@@ -198,7 +198,7 @@ class Muscle:
         gm = jnp.einsum("ajm,jm->am", g, fibre)  # (4, m)
         coef = volume[idx] * p.stiffness * p.weights
         local = jnp.einsum("am,bm,m->mab", gm, gm, coef)
-        return MusclePrep(tets=self.tets, local_matrices=local, coef=coef, fibre=fibre, channel=self.channel)
+        return MusclePrep(tets=idx, local_matrices=local, coef=coef, fibre=fibre, channel=jnp.asarray(self.channel))
 
     def energy_and_stress(self, f: Array, prep: MusclePrep, activation: Array) -> tuple[Array, Array]:
         """Energy ``(m,)`` and ``dE/dF`` ``(3, 3, m)`` for ``f`` ``(3, 3, m)`` and activations ``(c,)``."""

@@ -29,6 +29,7 @@ class StepInfo(eqx.Module):
     evaluations: Array
     residual: Array  # |grad Phi| / (|M s / h^2| + atol / tol): the relative residual reached
     converged: Array
+    inverted: Array  # number of inverted (det F <= 0) tets at the step's end
 
 
 
@@ -122,10 +123,15 @@ def solve_step(model: Model, prep: Prepared, state: State, activation, force, *,
         diagonal=prep.data[jnp.asarray(model.diag_to_data)][:, None],
         x_n=state.x, v_n=state.v, mass=prep.mass, free=free, dt=0.0 if static else opts.dt,
         time=state.t, obstacles=tuple(zip(model.obstacles, prep.obstacles)))
-    threshold = opts.tol * scale + opts.atol
     x0 = state.x if static else jnp.where(free > 0, state.x + opts.dt * state.v, state.x)
+    if static:
+        # Actuators may load a body with no external force: measure the residual against
+        # the load and the initial force imbalance together.
+        scale = scale + jnp.sqrt(jnp.sum(evaluate(x0, state.rot)[1] ** 2))
+    threshold = opts.tol * scale + opts.atol
     sol = model.method.run(problem, x0, state.rot, threshold, opts.max_iter, unrolled)
+    inverted = jnp.sum(rot.det3(deformation_gradient(model, prep.dminv, sol.x)) <= 0)
     info = StepInfo(iterations=sol.iterations, evaluations=sol.evaluations,
                     residual=sol.gnorm / (scale + opts.atol / opts.tol),
-                    converged=sol.gnorm <= threshold)
+                    converged=sol.gnorm <= threshold, inverted=inverted)
     return sol, info

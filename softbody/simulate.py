@@ -60,7 +60,11 @@ class Trajectory(eqx.Module):
 def _activation(model: Model, activation):
     if activation is None:
         return jnp.zeros(model.n_channels)
-    return jnp.asarray(activation)
+    activation = jnp.asarray(activation)
+    if activation.shape != (model.n_channels,):
+        raise SceneError(f"activation must have shape ({model.n_channels},) (channels {list(model.channel_names)}), "
+                         f"got {tuple(activation.shape)}")
+    return activation
 
 
 def step(model: Model, prep: Prepared, state: State, activation=None, force=None) -> tuple[State, StepInfo]:
