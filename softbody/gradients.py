@@ -36,7 +36,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from softbody.objective import solve_step, step_objective
 
 Array = jax.Array
 
@@ -59,16 +58,28 @@ class Unrolled(Adjoint):
     Attributes:
         segment_checkpoints: checkpoint segments of ~sqrt(n_steps) steps (memory
             O(sqrt(n_steps)) states for ~one extra forward pass).
+        remat: rematerialise each step in the backward pass (``jax.checkpoint``), so the
+            tape holds no per-iteration values; ``False`` is plain autodiff (for comparison).
+        extra_iterations: iterations run after each step has converged. They leave the
+            converged positions (nearly) unchanged but let the derivative of the iterates
+            converge too, which lags behind the iterates: on the gradient tests' cantilever
+            the derivative with respect to ``nu`` was 3e-6 off at ``tol=1e-12`` without them.
     """
 
     segment_checkpoints: bool = True
+    extra_iterations: int = 20
+    remat: bool = True
 
     def solve(self, model, prep, state, activation, force, *, static):
-        return jax.checkpoint(
-            lambda prep, state, activation, force: solve_step(
-                model, prep, state, activation, force, static=static, unrolled=True),
-            prevent_cse=False,
-        )(prep, state, activation, force)
+        from softbody.objective import solve_step
+
+        def run(prep, state, activation, force):
+            return solve_step(model, prep, state, activation, force, static=static,
+                              unrolled=1 + self.extra_iterations)
+
+        if self.remat:
+            run = jax.checkpoint(run, prevent_cse=False)
+        return run(prep, state, activation, force)
 
 
 @dataclass(frozen=True)
@@ -88,6 +99,7 @@ class Implicit(Adjoint):
 
     def solve(self, model, prep, state, activation, force, *, static):
         from softbody.model import State
+        from softbody.objective import solve_step, step_objective
 
         def forward(prep, x_n, v_n, q_n, t, activation, force):
             sol, info = solve_step(model, prep, State(x_n, v_n, q_n, t), activation, force, static=static)

@@ -104,12 +104,13 @@ def step_objective(model: Model, prep: Prepared, x_n, v_n, q_n, activation, forc
 
 
 def solve_step(model: Model, prep: Prepared, state: State, activation, force, *, static: bool,
-               unrolled: bool = False) -> tuple[Solution, StepInfo]:
+               unrolled: bool | int = False) -> tuple[Solution, StepInfo]:
     """Run the model's iteration method on one step (or a static solve).
 
-    ``unrolled=True`` runs a fixed-trip loop that reverse-mode autodiff differentiates as
-    it ran; otherwise the loop is a ``while_loop`` (differentiate it with the implicit
-    adjoint, :class:`softbody.gradients.Implicit`).
+    ``unrolled=k`` runs a fixed-trip loop that reverse-mode autodiff differentiates as it
+    ran, with ``k - 1`` iterations after convergence (see :func:`softbody.solvers.iterate`);
+    ``False`` runs a ``while_loop`` (differentiate it with the implicit adjoint,
+    :class:`softbody.gradients.Implicit`).
     """
     evaluate, scale = step_objective(model, prep, state.x, state.v, state.rot, activation, force, static=static)
     solver = model.linear_solver

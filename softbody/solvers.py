@@ -90,21 +90,27 @@ def _norm(g):
     return jnp.sqrt(jnp.sum(g * g))
 
 
-def iterate(cond, body, init, max_iter: int, unrolled: bool):
+def iterate(cond, body, init, max_iter: int, unrolled: bool | int):
     """``while cond(c): c = body(c)`` with at most ``max_iter`` trips.
 
     ``unrolled=False``: a ``lax.while_loop`` (fast; not reverse-differentiable).
-    ``unrolled=True``: a ``lax.scan`` of ``max_iter`` trips whose body is skipped by
-    ``lax.cond`` once ``cond`` fails, so reverse mode differentiates the iterations exactly
-    as they ran, at no extra forward work beyond the predicate.
+    ``unrolled=k`` (``True`` or an int >= 1): a ``lax.scan`` of ``max_iter + k`` trips whose
+    body is skipped by ``lax.cond`` once ``cond`` has failed and ``k - 1`` further
+    iterations have run, so reverse mode differentiates the iterations exactly as they
+    ran. The further iterations barely move a converged iterate but let its derivative
+    catch up: derivatives of fixed-point iterates converge with a lag behind the iterates.
     """
-    if not unrolled:
+    if unrolled is False:
         return jax.lax.while_loop(cond, body, init)
+    extra = max(int(unrolled), 1) - 1
 
-    def trip(c, _):
-        return jax.lax.cond(cond(c), body, lambda c: c, c), None
+    def trip(carry, _):
+        c, after = carry
+        run = cond(c) | (after < extra)
+        after = after + (run & ~cond(c)).astype(after.dtype)
+        return (jax.lax.cond(run, body, lambda c: c, c), after), None
 
-    return jax.lax.scan(trip, init, None, length=max_iter)[0]
+    return jax.lax.scan(trip, (init, jnp.asarray(0)), None, length=max_iter + extra)[0][0]
 
 
 @dataclass(frozen=True)

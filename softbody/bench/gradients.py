@@ -1,0 +1,179 @@
+"""Gradient cost, accuracy and memory on the shared DiffPD cantilever.
+
+* ``backward_s_per_frame``: the :class:`~softbody.gradients.Implicit` adjoint's backward
+  pass per frame for DiffPD's loss ``w_q . q_T + w_v . v_T`` (25 frames, forward
+  tolerance 1e-4 as DiffPD's 0.35 s/frame figure), i.e. (time of value-and-gradient -
+  time of the forward rollout) / frames, medians, compile excluded; ``Unrolled`` beside it.
+* ``fd_rel_error``: max over parameter kinds (log E, nu, density, initial positions and
+  velocities, muscle activations, external forces) of the relative error between the
+  Implicit gradient's directional derivative and central finite differences, at forward
+  tolerance 1e-10, on the first 5 frames.
+* Memory: peak RSS (``ru_maxrss``, measured in a child process per run) and time of a
+  gradient against the horizon (50 ... 5000 steps) for ``Implicit``, ``Unrolled``
+  (checkpointed) and ``Unrolled`` without any checkpointing (plain autodiff through the
+  iterations), on the same 2673-vertex mesh; ``peak_rss_mb_1000_steps`` is Implicit's.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from softbody.bench.pd_cantilever import DIFFPD, load_scene, loss_of
+
+
+def _adjoint(name: str):
+    from softbody.gradients import Implicit, Unrolled
+
+    return {"implicit": Implicit(), "unrolled": Unrolled(),
+            "plain": Unrolled(segment_checkpoints=False, remat=False)}[name]
+
+
+def _loss_fn(model, params, state0, controls, forces, scene):
+    from softbody.simulate import rollout
+
+    def loss(controls):
+        return loss_of(rollout(model, params, state0, controls=controls, forces=forces), scene)
+
+    return loss
+
+
+def _median_time(f, *args, repeats):
+    jax.block_until_ready(f(*args))
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(f(*args))
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+def backward_cost(adjoint: str, repeats: int) -> dict:
+    """Forward and backward seconds per frame on the 25-frame scene at tolerance 1e-4."""
+    model, params, state0, controls, forces, scene = load_scene(tol=1e-4, adjoint=_adjoint(adjoint))
+    loss = _loss_fn(model, params, state0, controls, forces, scene)
+    frames = controls.shape[0]
+    forward = _median_time(jax.jit(loss), controls, repeats=repeats)
+    both = _median_time(jax.jit(jax.value_and_grad(loss)), controls, repeats=repeats)
+    return {"forward_s_per_frame": forward / frames, "backward_s_per_frame": max(both - forward, 0.0) / frames}
+
+
+def fd_errors(frames: int = 5) -> dict:
+    """Relative errors of Implicit gradients vs central differences, per parameter kind."""
+    from softbody.gradients import check_grad
+    from softbody.model import State
+    from softbody.simulate import rollout
+
+    model, params, state0, controls, forces, scene = load_scene(tol=1e-10, atol=0.0)
+    controls, forces = controls[:frames], forces[:frames]
+    theta = {"logE": jnp.log(params.E), "nu": params.nu, "density": params.density / 1000,
+             "x0": state0.x, "v0": state0.v, "activation": controls, "force": forces}
+
+    def loss(th):
+        p = type(params)(E=jnp.exp(th["logE"]), nu=th["nu"], density=th["density"] * 1000, alpha=params.alpha,
+                         beta=params.beta, morph=params.morph, actuators=params.actuators,
+                         obstacles=params.obstacles)
+        s0 = State(x=th["x0"], v=th["v0"], rot=state0.rot, t=state0.t)
+        return loss_of(rollout(model, p, s0, controls=th["activation"], forces=th["force"]), scene)
+
+    dirs = {k: {j: (1.0 if j == k else 0.0) for j in theta} for k in theta}
+    res = check_grad(loss, theta, directions=dirs, eps=1e-4, verbose=False)
+    return {k: v["rel_error"] for k, v in res.items()}
+
+
+def _child(adjoint: str, horizon: int) -> None:
+    """Run in a fresh process: gradient over ``horizon`` steps; print time and peak RSS."""
+    import resource
+
+    model, params, state0, controls, forces, scene = load_scene(tol=1e-4, adjoint=_adjoint(adjoint))
+    controls = jnp.broadcast_to(controls[0], (horizon, controls.shape[1]))
+    forces = jnp.broadcast_to(forces[0], (horizon,) + forces.shape[1:])
+    loss = _loss_fn(model, params, state0, controls, forces, scene)
+    grad = jax.jit(jax.grad(loss))
+    t0 = time.perf_counter()
+    g = jax.block_until_ready(grad(controls))
+    first = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    g = jax.block_until_ready(grad(controls))
+    run = time.perf_counter() - t0
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(json.dumps({"adjoint": adjoint, "horizon": horizon, "gradient_s": run, "compile_s": max(first - run, 0.0),
+                      "peak_rss_mb": rss, "finite": bool(np.all(np.isfinite(np.asarray(g))))}))
+
+
+def memory_table(horizons, adjoints, timeout: float) -> list[dict]:
+    rows = []
+    for adjoint in adjoints:
+        for horizon in horizons:
+            cmd = [sys.executable, "-m", "softbody.bench.gradients", adjoint, str(horizon)]
+            try:
+                out = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+            except subprocess.TimeoutExpired:
+                rows.append({"adjoint": adjoint, "horizon": horizon, "error": f"over {timeout:.0f} s"})
+                break
+            lines = [line for line in out.stdout.splitlines() if line.startswith("{")]
+            if out.returncode != 0 or not lines:
+                why = (out.stderr.strip().splitlines() or ["failed"])[-1]
+                rows.append({"adjoint": adjoint, "horizon": horizon, "error": why[:200]})
+                break  # longer horizons will not fare better
+            rows.append(json.loads(lines[-1]))
+    return rows
+
+
+def run(out: Path, quick: bool) -> dict:
+    repeats = 2 if quick else 3
+    implicit = backward_cost("implicit", repeats)
+    unrolled = backward_cost("unrolled", repeats)
+    errors = fd_errors()
+    horizons = [50, 100] if quick else [50, 100, 500, 1000, 5000]
+    rows = memory_table(horizons, ["implicit", "unrolled", "plain"], timeout=600 if quick else 1800)
+    rss_1000 = next((r["peak_rss_mb"] for r in rows if r.get("adjoint") == "implicit"
+                     and r.get("horizon") == 1000 and "peak_rss_mb" in r), None)
+    figures = {
+        "backward_s_per_frame": implicit["backward_s_per_frame"],
+        "forward_s_per_frame": implicit["forward_s_per_frame"],
+        "unrolled_backward_s_per_frame": unrolled["backward_s_per_frame"],
+        "fd_rel_error": max(errors.values()),
+        "fd_rel_error_by_kind": errors,
+        "peak_rss_mb_1000_steps": rss_1000,
+        "memory_table": rows,
+        "diffpd_backward_s_per_frame": DIFFPD["backward_s_per_frame"],
+    }
+    _plot(out / "gradients.png", rows)
+    return figures
+
+
+def _plot(path: Path, rows: list[dict]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 4))
+    labels = {"implicit": "Implicit", "unrolled": "Unrolled (checkpointed)", "plain": "Unrolled, no checkpoints"}
+    for adjoint, label in labels.items():
+        ok = [r for r in rows if r.get("adjoint") == adjoint and "peak_rss_mb" in r]
+        if ok:
+            h = [r["horizon"] for r in ok]
+            a.loglog(h, [r["peak_rss_mb"] for r in ok], "o-", label=label)
+            b.loglog(h, [r["gradient_s"] for r in ok], "o-", label=label)
+    a.set_xlabel("steps")
+    a.set_ylabel("peak RSS of the process, MB")
+    b.set_xlabel("steps")
+    b.set_ylabel("gradient wall time, s (compile excluded)")
+    a.legend()
+    a.set_title("2673-vertex cantilever, tol 1e-4")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    _child(sys.argv[1], int(sys.argv[2]))
