@@ -17,6 +17,7 @@ Region names: ``"cavity:<name>"`` (wall triangles facing into the cavity),
 such as ``"fixed"`` and ``"tip"`` (vertices, and the surface triangles among them).
 Example robots: :data:`EXAMPLES` (``cantilever``, ``finger``, ``quadruped``,
 ``caterpillar``, ``cube``, ``ball``). Surfaces: :func:`mesh_file` (STL, OBJ, STEP).
+Structured boxes without gmsh: :func:`grid_box`.
 """
 
 from .examples import EXAMPLES, ball, cantilever, caterpillar, cube, finger, quadruped
@@ -36,6 +37,7 @@ from .geometry import (
     mesh,
     select_regions,
 )
+from .grid import grid_box
 from .io import load, save
 from .mesh import MeshError, Region, TetMesh, boundary_faces, signed_volumes
 from .quality import (
@@ -58,7 +60,7 @@ from .surface import (
 )
 
 __all__ = [
-    "MeshError", "Region", "TetMesh", "boundary_faces", "signed_volumes",
+    "MeshError", "Region", "TetMesh", "boundary_faces", "signed_volumes", "grid_box",
     "Shape", "Box", "Cylinder", "Sphere", "Capsule", "CAD", "Tag", "Cavity",
     "Plane", "InBox", "Selection", "mesh", "select_regions", "DEFAULT_MIN_QUALITY",
     "QualityReport", "RegionSummary", "quality_report", "check_quality", "gamma",
