@@ -1,0 +1,285 @@
+"""Skeletons: forward kinematics, the reduced (Schur-complement) step, rigid bones in soft
+bodies, joint torques and servos, and the errors of bad skeletons.
+
+Small structured meshes in float64. The pendulum and the torqued hinge are rigid bodies
+whose motion is known in closed form; the arm is two bones in a soft skin.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from softbody.actuators.joints import JointServo, JointTorque
+from softbody.material import Material
+from softbody.meshing import Region
+from softbody.meshing.grid import grid_box
+from softbody.model import Options, SceneError, build, initial_state, prepare
+from softbody.simulate import rollout
+from softbody.skeleton import (Fixed, Free, Link, Prismatic, Revolute, Skeleton, SkeletonError, SkeletonPD,
+                               schur_direction, schur_factor)
+
+SKIN = Material(E=1e4, nu=0.3, density=1000.0)  # Pa, -, kg/m^3: a soft silicone skin
+
+
+def _box_region(mesh, lo, hi) -> Region:
+    """The vertices in the box ``[lo, hi]`` and the tets with all four corners in it."""
+    p = mesh.points
+    inside = np.all((p >= np.asarray(lo) - 1e-9) & (p <= np.asarray(hi) + 1e-9), axis=1)
+    return Region(np.flatnonzero(inside), np.flatnonzero(inside[mesh.tets].all(axis=1)))
+
+
+@pytest.fixture(scope="module")
+def bar():
+    """A 0.3 m bar with three bones inside (a soft skin of one cell around them)."""
+    mesh = grid_box((0.3, 0.04, 0.04), (15, 4, 4))
+    bones = {f"bone:{name}": _box_region(mesh, (x0, 0.01, 0.01), (x0 + 0.06, 0.03, 0.03))
+             for name, x0 in (("a", 0.02), ("b", 0.12), ("c", 0.22))}
+    return mesh.with_regions(**bones)
+
+
+@pytest.fixture(scope="module")
+def chain(bar):
+    """Free root, a revolute joint on a skew axis, a prismatic joint: 8 dofs."""
+    skeleton = Skeleton([Link("c", "bone:c", "b", Prismatic((1.0, 0.2, 0.0))),
+                         Link("a", "bone:a", None, Free()),
+                         Link("b", "bone:b", "a", Revolute((0.0, 1.0, 1.0), (0.1, 0.02, 0.02)))])
+    return skeleton.bind(bar)
+
+
+def _pose(rig, seed, scale=0.5):
+    dz = scale * jax.random.normal(jax.random.PRNGKey(seed), (rig.n_dofs,))
+    return rig.retract(rig.rest_coordinates(), dz)
+
+
+def test_links_are_ordered_top_down(chain):
+    assert [link.name for link in chain.links] == ["a", "b", "c"]
+    assert (chain.n_coords, chain.n_dofs) == (9, 8)
+
+
+def test_fk_jacobian_matches_finite_differences(chain):
+    """``B`` (tangent coordinates) against central differences of FK along the retraction;
+    the truncation error is ~eps^2 |x'''| ~ 1e-12 m for eps = 1e-6."""
+    for seed in range(3):
+        z = _pose(chain, seed)
+        b = chain.jacobian(z)
+        eps = 1e-6
+        fd = jnp.stack([(chain.positions(chain.retract(z, eps * e)) - chain.positions(chain.retract(z, -eps * e)))
+                        / (2 * eps) for e in jnp.eye(chain.n_dofs)], axis=-1)
+        assert float(jnp.abs(fd - b).max()) < 1e-8 * float(jnp.abs(b).max())
+
+
+def test_coordinates_invert_forward_kinematics(chain):
+    for seed in range(3):
+        z = _pose(chain, seed)
+        back = chain.coordinates(chain.positions(z))
+        # The quaternion is defined up to sign.
+        back = back.at[3:7].multiply(jnp.sign(back[3] * z[3]))
+        np.testing.assert_allclose(back, z, atol=1e-12)
+
+
+def test_fixed_root_welds_its_bone_to_the_world(bar):
+    rig = Skeleton([Link("a", "bone:a", None, Fixed())]).bind(bar)
+    z = rig.rest_coordinates()
+    assert z.shape == (0,) and rig.jacobian(z).shape == (len(rig.bone), 3, 0)
+    np.testing.assert_array_equal(rig.positions(z), bar.points[rig.bone])
+
+
+def test_free_root_rotates_about_its_centre_of_mass(chain):
+    """A pure rotation of the Free root leaves the root bone's centroid in place (the
+    bone is a uniform block of equal tets, so its centroid is its centre of mass)."""
+    z = chain.rest_coordinates().at[3:7].set(jnp.array([np.cos(0.4), np.sin(0.4), 0.0, 0.0]))
+    x = chain.positions(z)[chain.vertex_link == 0]
+    np.testing.assert_allclose(x.mean(axis=0), chain.rest[chain.vertex_link == 0].mean(axis=0), atol=1e-15)
+
+
+def test_schur_solve_equals_direct_reduced_solve(bar, chain):
+    """The Schur-complement direction against a dense solve of the full reduced system
+    ``[[Q_ff, Q_fr B], [B^T Q_rf, B^T Q_rr B]]`` (with one joint held at a limit)."""
+    model, params = build(bar, SKIN, options=Options(dt=0.01, method=SkeletonPD(chain)))
+    prep = prepare(model, params)
+    precondition = lambda r: model.linear_solver.solve(model.pattern, prep.factor, r)  # noqa: E731
+    a = np.asarray(model.pattern.to_dense(prep.data))
+    n, bone = bar.n_vertices, chain.bone
+    free = np.setdiff1d(np.arange(n), bone)
+    g = np.asarray(jax.random.normal(jax.random.PRNGKey(7), (n, 3)))
+    b = np.asarray(chain.jacobian(_pose(chain, 1)))
+    locked = np.zeros(chain.n_dofs)
+    locked[6] = 1.0
+    d, d_z = schur_direction(schur_factor(precondition, bone, n), bone, jnp.asarray(b), jnp.asarray(g),
+                             jnp.asarray(locked), precondition)
+
+    bm = (b * (1.0 - locked)).reshape(3 * len(bone), -1)
+    blocks = {k: np.kron(a[np.ix_(r, c)], np.eye(3)) for k, (r, c) in
+              {"ff": (free, free), "fr": (free, bone), "rr": (bone, bone)}.items()}
+    k_full = np.block([[blocks["ff"], blocks["fr"] @ bm],
+                       [bm.T @ blocks["fr"].T, bm.T @ blocks["rr"] @ bm + np.diag(locked)]])
+    direct = np.linalg.solve(k_full, np.concatenate([g[free].ravel(), bm.T @ g[bone].ravel()]))
+    d_f, d_z_direct = direct[:3 * len(free)].reshape(-1, 3), direct[3 * len(free):]
+    d = np.asarray(d)
+    assert np.abs(d[free] - d_f).max() <= 1e-10 * np.abs(d_f).max()
+    assert np.abs(d_z - d_z_direct).max() <= 1e-10 * np.abs(d_z_direct).max()
+    assert d_z_direct[6] == 0.0
+    assert np.abs(d[bone] - (bm @ d_z_direct).reshape(-1, 3)).max() <= 1e-10 * np.abs(d).max()
+
+
+def _pairwise(x):
+    return np.linalg.norm(x[:, None] - x[None], axis=-1)
+
+
+def _max_distance_change(xs, idx):
+    ref = _pairwise(xs[0][idx])
+    return max(np.abs(_pairwise(x[idx]) - ref).max() for x in xs)
+
+
+def test_rigid_pendulum_period_and_rigidity():
+    """A 2 cm cube swinging on a revolute joint 11 cm above its centre, all of it bone.
+
+    Small-angle period ``T = 2 pi sqrt(I / (m g d))`` with ``I`` and ``m`` of the lumped
+    vertex masses the simulation uses. Implicit Euler lengthens the period by a relative
+    ``(h w)^2 / 3 ~ 3e-5`` at h = 1 ms and damps the swing (amplitude x ~0.97 per period),
+    neither of which shifts zero crossings by 2%; a 0.05 rad amplitude adds ``theta^2/16``.
+    """
+    mesh = grid_box((0.02, 0.02, 0.02), (2, 2, 2))
+    mesh = mesh.with_regions(**{"bone:bob": Region(np.arange(mesh.n_vertices), np.arange(mesh.n_tets))})
+    pivot = np.array([0.01, 0.01, 0.12])
+    rig = Skeleton([Link("bob", "bone:bob", None, Revolute((0.0, 1.0, 0.0), tuple(pivot)))]).bind(mesh)
+    dt, g = 1e-3, 9.81
+    model, params = build(mesh, SKIN, options=Options(dt=dt, tol=1e-8, method=SkeletonPD(rig)))
+    mass = np.asarray(prepare(model, params).mass)[:, 0]
+    arm = mesh.points - pivot
+    inertia = float(np.sum(mass * (arm[:, 0] ** 2 + arm[:, 2] ** 2)))
+    depth = float(-np.sum(mass * arm[:, 2]) / mass.sum())
+    period = 2 * np.pi * np.sqrt(inertia / (mass.sum() * g * depth))
+
+    x0 = np.asarray(mesh.points).copy()
+    x0[rig.bone] = np.asarray(rig.positions(jnp.array([0.05])))
+    n_steps = int(1.2 * period / dt)
+    traj = rollout(model, params, initial_state(model, params, x=x0), n_steps=n_steps)
+    assert bool(jnp.all(traj.info.converged))
+    xs = np.asarray(traj.x)
+    theta = np.asarray(jax.jit(jax.vmap(rig.coordinates))(jnp.asarray(xs[:, rig.bone])))[:, 0]
+    crossings = [k + theta[k] / (theta[k] - theta[k + 1]) for k in range(n_steps) if theta[k] * theta[k + 1] < 0]
+    measured = 2 * (crossings[1] - crossings[0]) * dt
+    assert abs(measured / period - 1) < 0.02, (measured, period)
+    assert _max_distance_change(xs, rig.bone) < 1e-8
+
+
+@pytest.fixture(scope="module")
+def arm():
+    """A soft arm (0.2 m) clamped at x = 0, with two bones hinged about y."""
+    mesh = grid_box((0.2, 0.04, 0.04), (10, 4, 4))
+    mesh = mesh.with_regions(**{"bone:upper": _box_region(mesh, (0.02, 0.01, 0.01), (0.08, 0.03, 0.03)),
+                                "bone:fore": _box_region(mesh, (0.12, 0.01, 0.01), (0.18, 0.03, 0.03))})
+    skeleton = Skeleton([Link("upper", "bone:upper", None, Revolute((0.0, 1.0, 0.0), (0.02, 0.02, 0.02))),
+                         Link("fore", "bone:fore", "upper", Revolute((0.0, 1.0, 0.0), (0.10, 0.02, 0.02)))])
+    return mesh, skeleton.bind(mesh)
+
+
+def test_two_link_arm_in_soft_skin_keeps_bone_lengths_and_joint_limits(arm):
+    """The arm sags under gravity; the shoulder's upper limit (0.01 rad) stops it and
+    holds it there, the elbow bends freely; bones stay rigid, the skin deforms."""
+    mesh, _ = arm
+    rig = Skeleton([Link("upper", "bone:upper", None, Revolute((0.0, 1.0, 0.0), (0.02, 0.02, 0.02), (-0.3, 0.01))),
+                    Link("fore", "bone:fore", "upper", Revolute((0.0, 1.0, 0.0), (0.10, 0.02, 0.02)))]).bind(mesh)
+    model, params = build(mesh, SKIN, fixed="xmin", options=Options(dt=0.01, method=SkeletonPD(rig)))
+    traj = rollout(model, params, initial_state(model, params), n_steps=25)
+    assert bool(jnp.all(traj.info.converged))
+    xs = np.asarray(traj.x)
+    z = np.asarray(jax.jit(jax.vmap(rig.coordinates))(jnp.asarray(xs[:, rig.bone])))
+    assert z[:, 0].max() <= 0.01 + 1e-12 and z[-1, 0] == pytest.approx(0.01, abs=1e-12)
+    assert z[-1, 1] > 0.02  # +y turns +x towards -z: the forearm sags
+    for link in range(2):
+        assert _max_distance_change(xs, rig.bone[rig.vertex_link == link]) < 1e-10
+    # the shoulder stays on its hinge; the skin between the bones does deform
+    upper = rig.bone[rig.vertex_link == 0]
+    radius = np.linalg.norm(xs[:, upper] - np.array([0.02, 0.02, 0.02]), axis=-1)
+    assert np.abs(radius - radius[0]).max() < 1e-10
+    skin = np.setdiff1d(np.arange(mesh.n_vertices), np.concatenate([rig.bone, mesh.regions["xmin"].vertices]))
+    assert _max_distance_change(xs, skin) > 1e-3
+
+
+def test_joint_torque_and_saturated_servo_spin_a_hinged_body():
+    """A bone block hinged through its centre of mass, no gravity, driven by a constant
+    torque ``tau`` and by a servo far from its target, which applies its torque limit
+    ``tau_s``: ``theta = (tau + tau_s) t^2 / (2 I)``; implicit Euler gives
+    ``(tau + tau_s) h^2 N (N + 1) / (2 I)`` after N steps (exact for this motion, to the
+    step tolerance and the O(theta^2) difference between chord and arc)."""
+    mesh = grid_box((0.04, 0.02, 0.02), (2, 1, 1))
+    mesh = mesh.with_regions(**{"bone:body": Region(np.arange(mesh.n_vertices), np.arange(mesh.n_tets))})
+    centre = np.array([0.02, 0.01, 0.01])
+    rig = Skeleton([Link("body", "bone:body", None, Revolute((0.0, 0.0, 1.0), tuple(centre)))]).bind(mesh)
+    tau, tau_s, dt, n_steps = 1e-4, 2e-4, 1e-3, 100
+    servo = JointServo(rig, ["body"], stiffness=1.0, torque_limit=tau_s)
+    model, params = build(mesh, SKIN, actuators=[JointTorque(rig, ["body"]), servo],
+                          options=Options(dt=dt, gravity=(0.0, 0.0, 0.0), tol=1e-10, method=SkeletonPD(rig)))
+    mass = np.asarray(prepare(model, params).mass)[:, 0]
+    arm = mesh.points - centre
+    inertia = float(np.sum(mass * (arm[:, 0] ** 2 + arm[:, 1] ** 2)))
+    traj = rollout(model, params, initial_state(model, params), controls=jnp.tile(jnp.array([tau, 3.0]), (n_steps, 1)))
+    theta = float(rig.coordinates(traj.x[-1][jnp.asarray(rig.bone)])[0])
+    expected = (tau + tau_s) * dt**2 * n_steps * (n_steps + 1) / (2 * inertia)
+    assert abs(theta / expected - 1) < 1e-3, (theta, expected)
+    assert float(servo.torques(traj.x[-1], params.actuators[1], jnp.array([3.0]))[0]) == pytest.approx(tau_s)
+
+
+def test_servo_holds_a_joint_at_its_target_against_gravity(arm):
+    """The shoulder servo lifts the arm to 0.1 rad above the horizontal; the soft skin and
+    gravity pull back, so the servo settles where its torque balances them, slightly
+    below the target (stiff gain: within 0.02 rad)."""
+    mesh, rig = arm
+    servo = JointServo(rig, ["upper", "fore"], stiffness=50.0, torque_limit=5.0)
+    model, params = build(mesh, Material(E=1e4, nu=0.3, density=1000.0, alpha=20.0), fixed="xmin",
+                          options=Options(dt=0.01, method=SkeletonPD(rig)), actuators=[servo])
+    target = jnp.array([-0.1, 0.0])
+    traj = rollout(model, params, initial_state(model, params), controls=jnp.tile(target, (60, 1)))
+    z = np.asarray(rig.coordinates(traj.x[-1][jnp.asarray(rig.bone)]))
+    assert np.abs(z - np.asarray(target)).max() < 0.02, z
+    assert np.all(np.abs(np.asarray(servo.torques(traj.x[-1], params.actuators[0], target))) <= 5.0)
+
+
+@pytest.mark.parametrize("links, message", [
+    ([], "at least one link"),
+    ([Link("a", "bone:a", "ghost")], "unknown parent 'ghost'"),
+    ([Link("a", "bone:a", "b"), Link("b", "bone:b", "a")], "cycle"),
+    ([Link("a", "bone:a"), Link("a", "bone:b", "a")], "used 2 times"),
+    ([Link("a", "bone:a"), Link("b", "bone:b", "a", Free())], "parent=None"),
+    ([Link("a", "bone:a", None, "hinge")], "joint must be"),
+])
+def test_bad_trees_are_rejected(links, message):
+    with pytest.raises(SkeletonError, match=message):
+        Skeleton(links)
+
+
+def test_bad_joints_and_bones_are_rejected(bar):
+    with pytest.raises(SkeletonError, match="zero length"):
+        Revolute((0.0, 0.0, 0.0))
+    with pytest.raises(SkeletonError, match="zero length"):
+        Prismatic((0.0, 0.0, 1e-15))
+    with pytest.raises(SkeletonError, match="lower < upper"):
+        Revolute((0.0, 0.0, 1.0), limits=(0.5, -0.5))
+    with pytest.raises(SkeletonError, match="not in the mesh"):
+        Skeleton([Link("a", "bone:nope")]).bind(bar)
+    empty = bar.with_regions(**{"bone:empty": Region(np.zeros(0, np.int32))})
+    with pytest.raises(SkeletonError, match="has no vertices"):
+        Skeleton([Link("a", "bone:empty")]).bind(empty)
+    flat = bar.with_regions(**{"bone:flat": Region(bar.regions["xmin"].vertices)})
+    with pytest.raises(SkeletonError, match="coplanar"):
+        Skeleton([Link("a", "bone:flat")]).bind(flat)
+    with pytest.raises(SkeletonError, match="must not overlap"):
+        Skeleton([Link("a", "bone:a"), Link("b", "bone:a", "a")]).bind(bar)
+
+
+def test_fixed_bone_vertices_and_wrong_meshes_are_rejected(bar, arm):
+    rig = Skeleton([Link("a", "bone:a", None, Free())]).bind(bar)
+    model, params = build(bar, SKIN, fixed=rig.bone[:1], options=Options(method=SkeletonPD(rig)))
+    with pytest.raises(Exception, match="bone vertices are fixed"):
+        rollout(model, params, initial_state(model, params), n_steps=1)
+    model, params = build(arm[0], SKIN, options=Options(method=SkeletonPD(rig)))
+    with pytest.raises(SkeletonError, match="bound to a mesh of 400 vertices"):
+        rollout(model, params, initial_state(model, params), n_steps=1)
+    model, params = build(bar, SKIN, actuators=[JointTorque(arm[1], ["upper"])])
+    with pytest.raises(SceneError, match="bound to a mesh of"):
+        prepare(model, params)
+    with pytest.raises(SceneError, match="only Revolute and Prismatic"):
+        JointTorque(rig, ["a"])
