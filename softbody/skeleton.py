@@ -522,26 +522,26 @@ def _centre(joint, mesh: TetMesh, region) -> np.ndarray | None:
 
 
 class SchurFactor(NamedTuple):
-    """The bone block of the PD matrix ``A``, condensed onto the bones (see :func:`schur_factor`).
+    """The PD matrix ``A`` condensed onto the bone vertices (see :func:`schur_factor`).
 
     Attributes:
-        columns: ``(n, n_b)`` ``C = A^-1 E_r``, the solves with the bone vertices' unit vectors.
-        cholesky: ``(n_b, n_b)`` lower Cholesky factor of ``C_rr = (A^-1)_rr = S0^-1``.
+        schur: ``(n_b, n_b)`` the Schur complement ``S0 = Q_rr - Q_rf Q_ff^-1 Q_fr``.
+        coupling: ``(n, n_b)`` ``W = A^-1 E_r S0`` (``E_r``: the bone vertices' unit vectors).
     """
 
-    columns: Array
-    cholesky: Array
+    schur: Array
+    coupling: Array
 
 
 def schur_factor(precondition, bone: np.ndarray, n: int) -> SchurFactor:
     """Condense the PD matrix onto the bone vertices.
 
     With ``A = [[Q_ff, Q_fr], [Q_rf, Q_rr]]`` (free and bone vertices; scalar ``n x n``),
-    the Schur complement ``S0 = Q_rr - Q_rf Q_ff^-1 Q_fr`` is the inverse of the bone block of
-    ``A^-1``. Both come from ``n_b`` solves with the prefactored ``A`` (``precondition``)
-    and one dense Cholesky factorisation of size ``n_b``; no separate factorisation of
-    ``Q_ff`` is needed, and ``Q_ff^-1`` is applied through ``A^-1`` in
-    :func:`schur_direction`.
+    the Schur complement ``S0 = Q_rr - Q_rf Q_ff^-1 Q_fr`` is the inverse of the bone block
+    ``C_rr`` of ``C = A^-1 E_r``. Both come from one solve with the prefactored ``A``
+    (``precondition``) for the ``n_b`` unit columns and a dense Cholesky inversion of size
+    ``n_b``; no separate factorisation of ``Q_ff`` is needed, as ``Q_ff^-1`` is applied
+    through ``A^-1`` in :func:`schur_direction`.
 
     Arguments:
         precondition: ``b (n, k) -> A^-1 b``.
@@ -555,7 +555,10 @@ def schur_factor(precondition, bone: np.ndarray, n: int) -> SchurFactor:
     unit = jnp.zeros((n, len(bone))).at[bone, jnp.arange(len(bone))].set(1.0)
     columns = precondition(unit)
     block = columns[bone]
-    return SchurFactor(columns, jnp.linalg.cholesky(0.5 * (block + block.T)))
+    cholesky = jnp.linalg.cholesky(0.5 * (block + block.T))
+    schur = jax.scipy.linalg.cho_solve((cholesky, True), jnp.eye(len(bone)))
+    schur = 0.5 * (schur + schur.T)
+    return SchurFactor(schur, columns @ schur)
 
 
 def schur_direction(factor: SchurFactor, bone: np.ndarray, b: Array, g: Array, locked: Array,
@@ -563,13 +566,14 @@ def schur_direction(factor: SchurFactor, bone: np.ndarray, b: Array, g: Array, l
     """The reduced PD step: solve ``[[Q_ff, Q_fr B], [B^T Q_rf, B^T Q_rr B]] (d_f, d_z) = (g_f, B^T g_r)``.
 
     The quadratic model ``1/2 d^T A d - g . d`` is minimised over the displacements whose
-    bone rows are ``B d_z``. With ``u = A^-1 g`` and ``S0 = (C_rr)^-1``::
+    bone rows are ``B d_z``. With ``u = A^-1 g``::
 
-        (B^T S0 B) d_z = B^T S0 u_r,    d = u - C S0 (u_r - B d_z),
+        (B^T S0 B) d_z = B^T S0 u_r,    d = u - W (u_r - B d_z),
 
-    one solve with ``A`` and a dense system of size ``n_dofs`` (the bone rows of ``d`` come
-    out as ``B d_z``). This is the Schur complement on the ``z`` block written through
-    ``A^-1``: ``Q_ff^-1 = (A^-1)_ff - C_f S0 C_f^T``.
+    one solve with ``A``, products with the dense ``S0`` and ``W`` and a dense system of
+    size ``n_dofs`` (the bone rows of ``d`` come out as ``B d_z``). This is the Schur
+    complement on the ``z`` block written through ``A^-1``:
+    ``Q_ff^-1 = (A^-1)_ff - C_f S0 C_f^T``.
 
     Arguments:
         factor: from :func:`schur_factor`.
@@ -587,12 +591,10 @@ def schur_direction(factor: SchurFactor, bone: np.ndarray, b: Array, g: Array, l
     b = b * (1.0 - locked)
     u = precondition(g)
     u_r = u[jnp.asarray(bone)]
-    solve = lambda r: jax.scipy.linalg.cho_solve((factor.cholesky, True), r)  # noqa: E731
-    sb = solve(b.reshape(n_b, 3 * k)).reshape(n_b, 3, k)
+    sb = (factor.schur @ b.reshape(n_b, 3 * k)).reshape(n_b, 3, k)
     small = jnp.einsum("vik,vil->kl", b, sb) + jnp.diag(locked)
     d_z = jnp.linalg.solve(small, jnp.einsum("vik,vi->k", sb, u_r))
-    mu = solve(u_r - jnp.einsum("vik,k->vi", b, d_z))
-    return u - factor.columns @ mu, d_z
+    return u - factor.coupling @ (u_r - jnp.einsum("vik,k->vi", b, d_z)), d_z
 
 
 @dataclass(frozen=True, eq=False)
