@@ -1,0 +1,178 @@
+"""``softbody run``: simulate a mesh passively under gravity and write a result file.
+
+Command line::
+
+    softbody run MESH.msh|MESH.vtu|EXAMPLE [--size S] --E 1e5 --nu 0.45 --density 1000
+                 [--alpha 0] --dt 0.01 --steps 100 [--fixed REGION|none] [--tol 1e-4]
+                 [--gravity 0 0 -9.81] -o result.npz [--force]
+
+``EXAMPLE`` is one of :data:`softbody.meshing.EXAMPLES` (meshed on the spot, at ``--size``
+when given). The clamped vertices are those of ``--fixed``; by default the mesh's
+``"fixed"`` region when it has one, else none (a free body, which falls: there is no
+ground here). The result (:class:`~softbody.io.Result`) holds the trajectory, the mesh's
+regions and, as metadata, the material, the options, per-step solver iterations and the
+wall time; view it with ``softbody view``, render it with ``softbody render``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+class RunError(ValueError):
+    """The command line asks for something that cannot run; the message says why and what to do."""
+
+
+def load_mesh(target: str, size: float | None = None):
+    """The mesh named on the command line.
+
+    Arguments:
+        target: an example name (see :data:`softbody.meshing.EXAMPLES`) or a ``.msh`` /
+            ``.vtu`` file.
+        size: element edge length for an example, m (default: the example's own).
+
+    Returns:
+        The :class:`~softbody.meshing.TetMesh`.
+
+    Raises:
+        RunError: the target is neither an example nor an existing mesh file, or ``size``
+            is given for a file.
+        MeshError: the file cannot be read or the example cannot be meshed.
+    """
+    from softbody.meshing import EXAMPLES, load
+    from softbody.meshing.io import FORMATS
+
+    if target in EXAMPLES:
+        return EXAMPLES[target]() if size is None else EXAMPLES[target](size=size)
+    path = Path(target)
+    if path.suffix.lower() not in FORMATS:
+        raise RunError(f"{target!r} is neither an example ({', '.join(EXAMPLES)}) nor a mesh file "
+                       f"({', '.join(FORMATS)}); make one with `softbody mesh ... -o mesh.msh`")
+    if not path.is_file():
+        raise RunError(f"no mesh file {path}")
+    if size is not None:
+        raise RunError("--size applies to examples only; a mesh file is used as it is "
+                       "(remesh it with `softbody mesh`)")
+    return load(path)
+
+
+def fixed_region(mesh, name: str | None) -> str | None:
+    """The region to clamp: ``name``, or ``"fixed"`` when the mesh has it and ``name`` is ``None``.
+
+    ``"none"`` (any case) means a free body.
+
+    Raises:
+        RunError: ``name`` is not a region of the mesh (the message lists them) or has no vertices.
+    """
+    if name is None:
+        return "fixed" if "fixed" in mesh.regions else None
+    if name.lower() == "none":
+        return None
+    if name not in mesh.regions:
+        raise RunError(f"--fixed {name}: the mesh has no region {name!r}; it has "
+                       f"{', '.join(sorted(mesh.regions)) or 'no regions'} (or use --fixed none)")
+    if len(mesh.regions[name].vertices) == 0:
+        raise RunError(f"--fixed {name}: the region has no vertices")
+    return name
+
+
+def simulate(args: argparse.Namespace) -> tuple[object, dict]:
+    """Mesh or load, build and simulate what ``args`` describe.
+
+    Returns:
+        ``(result, summary)``: the :class:`~softbody.io.Result` and a dict of figures
+        (iterations per step, wall times) that is also its metadata.
+
+    Raises:
+        RunError, MeshError, ValueError: bad input (unknown mesh, region, material or option).
+        SimulationError: the simulation became non-finite.
+    """
+    from softbody.io import Result
+    from softbody.material import Material
+    from softbody.model import Options, build, initial_state
+    from softbody.simulate import rollout
+
+    if args.steps < 1:
+        raise RunError(f"--steps must be at least 1, got {args.steps}")
+    start = time.perf_counter()
+    mesh = load_mesh(args.mesh, args.size)
+    mesh_s = time.perf_counter() - start
+    fixed = fixed_region(mesh, args.fixed)
+    material = Material(E=args.E, nu=args.nu, density=args.density, alpha=args.alpha)
+    options = Options(dt=args.dt, tol=args.tol, gravity=tuple(args.gravity))
+    model, params = build(mesh, material, fixed=fixed, options=options)
+
+    tick = time.perf_counter()
+    traj = rollout(model, params, initial_state(model, params), n_steps=args.steps)
+    x = np.asarray(traj.x)
+    simulate_s = time.perf_counter() - tick
+    iterations = np.asarray(traj.info.iterations)
+    converged = np.asarray(traj.info.converged)
+    summary = {
+        "mesh": {"source": args.mesh, "vertices": mesh.n_vertices, "tets": mesh.n_tets},
+        "material": {"E": args.E, "nu": args.nu, "density": args.density, "alpha": args.alpha},
+        "options": {"dt": args.dt, "steps": args.steps, "tol": args.tol, "gravity": list(args.gravity),
+                    "fixed": fixed},
+        "iterations_per_step": iterations.tolist(),
+        "steps_not_converged": int(np.sum(~converged)),
+        "wall_time_s": {"mesh": mesh_s, "simulate_with_compile": simulate_s},
+    }
+    return Result.from_mesh(mesh, x, args.dt, metadata=summary), summary
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Arguments of ``softbody run``."""
+    parser.add_argument("mesh", help="a mesh file (.msh or .vtu, e.g. from `softbody mesh`) "
+                                     "or an example name")
+    parser.add_argument("--size", type=float, default=None, help="element edge length of an example, m")
+    parser.add_argument("--E", type=float, default=1e5, help="Young's modulus, Pa (default 1e5)")
+    parser.add_argument("--nu", type=float, default=0.45, help="Poisson's ratio (default 0.45)")
+    parser.add_argument("--density", type=float, default=1000.0, help="density, kg/m^3 (default 1000)")
+    parser.add_argument("--alpha", type=float, default=0.0, help="mass-proportional damping, 1/s (default 0)")
+    parser.add_argument("--dt", type=float, default=0.01, help="time step, s (default 0.01)")
+    parser.add_argument("--steps", type=int, default=100, help="number of time steps (default 100)")
+    parser.add_argument("--fixed", default=None,
+                        help="region whose vertices are clamped (default: 'fixed' if the mesh has it; "
+                             "'none' for a free body)")
+    parser.add_argument("--tol", type=float, default=1e-4,
+                        help="relative force tolerance per step (default 1e-4)")
+    parser.add_argument("--gravity", type=float, nargs=3, default=(0.0, 0.0, -9.81),
+                        metavar=("GX", "GY", "GZ"), help="gravity, m/s^2 (default 0 0 -9.81)")
+    parser.add_argument("-o", "--output", type=Path, required=True, help="result file to write (.npz)")
+    parser.add_argument("--force", action="store_true", help="overwrite the result file if it exists")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``softbody run``; returns the exit status (0 ok, 1 bad input or a failed simulation)."""
+    from softbody.io import check_overwrite
+    from softbody.meshing import MeshError
+    from softbody.simulate import SimulationError
+
+    out: Path = args.output
+    try:
+        if out.suffix != ".npz":
+            raise RunError(f"-o {out}: result files end in .npz")
+        check_overwrite(out, args.force)
+        result, summary = simulate(args)
+        result.save(out, force=args.force)
+    except (RunError, MeshError, ValueError, FileExistsError, SimulationError) as err:
+        print(f"softbody run: {err}", file=sys.stderr)
+        return 1
+    its = np.asarray(summary["iterations_per_step"])
+    t = summary["wall_time_s"]
+    opts = summary["options"]
+    print(f"mesh: {summary['mesh']['vertices']} vertices, {summary['mesh']['tets']} tets; "
+          f"clamped: {opts['fixed'] or 'nothing (free body)'}")
+    print(f"solver iterations per step: mean {its.mean():.1f}, min {its.min()}, max {its.max()}"
+          + (f"; {summary['steps_not_converged']} of {len(its)} steps hit the iteration cap"
+             if summary["steps_not_converged"] else "; every step converged"))
+    print(f"simulated {opts['steps']} steps ({opts['steps'] * opts['dt']:.3g} s) in "
+          f"{t['simulate_with_compile']:.1f} s wall time, compilation included "
+          f"(meshing/loading {t['mesh']:.1f} s)")
+    print(f"wrote {out}")
+    return 0
