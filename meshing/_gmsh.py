@@ -7,6 +7,7 @@ not thread-safe, so every use goes through :func:`session`, which holds a lock.
 
 from __future__ import annotations
 
+import signal
 import threading
 from contextlib import contextmanager
 from typing import Iterator, Sequence
@@ -33,11 +34,14 @@ def session(name: str = "softbody") -> Iterator[None]:
     """
     with _LOCK:
         owner = not gmsh.isInitialized()
+        main = threading.current_thread() is threading.main_thread()
+        # gmsh.finalize() does not restore the Ctrl-C handler it replaced: keep it here.
+        sigint = signal.getsignal(signal.SIGINT) if main else None
         if owner:
             gmsh.initialize(
                 readConfigFiles=False,
                 # gmsh installs a SIGINT handler, which Python allows in the main thread only.
-                interruptible=threading.current_thread() is threading.main_thread(),
+                interruptible=main,
             )
         try:
             gmsh.option.setNumber("General.Terminal", 0)
@@ -56,6 +60,8 @@ def session(name: str = "softbody") -> Iterator[None]:
         finally:
             if owner:
                 gmsh.finalize()
+            if main and sigint is not None:
+                signal.signal(signal.SIGINT, sigint)
 
 
 def gmsh_error(what: str, err: Exception, fix: str) -> MeshError:
