@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from softbody import io
+from softbody import contact, io
 from softbody.contact import (
     Box,
     Capsule,
@@ -42,6 +42,9 @@ G = 9.81
 EDGE = 0.1  # cube edge, m (density 1000: mass 1 kg)
 MU_S, MU_K = 0.5, 0.4
 DT = 0.01
+#: scenes that touch from the first step never take the contact-free path: a cheap one
+#: (plain PD) compiles faster than the default L-BFGS
+TOUCHING = ContactPD(free_method=LocalGlobal())
 
 
 def rot_y(theta):
@@ -56,11 +59,21 @@ def test_signed_distances_normals_and_velocities():
     pts = jnp.array([[0.0, 0.0, 2.0], [0.2, 0.1, 0.3], [3.0, 0.0, 0.0]])
     cases = [
         (Plane(point=(0, 0, 1), normal=(0, 0, 2)), [1.0, -0.7, -1.0], [[0, 0, 1]] * 3),
-        (Sphere(center=(0, 0, 0), radius=1.0), [1.0, np.sqrt(0.14) - 1, 2.0],
-         [[0, 0, 1], np.array([0.2, 0.1, 0.3]) / np.sqrt(0.14), [1, 0, 0]]),
-        (Box(center=(0, 0, 0), half_extents=(1, 0.5, 0.5)), [1.5, -0.2, 2.0], [[0, 0, 1], [0, 0, 1], [1, 0, 0]]),
-        (Capsule(p0=(0, 0, 0), p1=(1, 0, 0), radius=0.5), [1.5, np.sqrt(0.1) - 0.5, 1.5],
-         [[0, 0, 1], np.array([0, 0.1, 0.3]) / np.sqrt(0.1), [1, 0, 0]]),
+        (
+            Sphere(center=(0, 0, 0), radius=1.0),
+            [1.0, np.sqrt(0.14) - 1, 2.0],
+            [[0, 0, 1], np.array([0.2, 0.1, 0.3]) / np.sqrt(0.14), [1, 0, 0]],
+        ),
+        (
+            Box(center=(0, 0, 0), half_extents=(1, 0.5, 0.5)),
+            [1.5, -0.2, 2.0],
+            [[0, 0, 1], [0, 0, 1], [1, 0, 0]],
+        ),
+        (
+            Capsule(p0=(0, 0, 0), p1=(1, 0, 0), radius=0.5),
+            [1.5, np.sqrt(0.1) - 0.5, 1.5],
+            [[0, 0, 1], np.array([0, 0.1, 0.3]) / np.sqrt(0.1), [1, 0, 0]],
+        ),
     ]
     for ob, phi_ref, n_ref in cases:
         phi, normal, vel = jax.jit(ob.distance)(pts, ob.init_params(), 0.0)
@@ -78,16 +91,65 @@ def test_signed_distances_normals_and_velocities():
 
     # a height field sloping up along x at 0.5: distance (z - H)/sqrt(1.25)
     hf = HeightField(origin=(0, 0), spacing=(1, 1), heights=[[0, 0], [0.5, 0.5], [1.0, 1.0]])
-    phi, normal, _ = hf.distance(jnp.array([[0.5, 0.5, 1.0], [5.0, 0.5, 1.5]]), hf.init_params(), 0.0)
+    phi, normal, _ = hf.distance(
+        jnp.array([[0.5, 0.5, 1.0], [5.0, 0.5, 1.5]]), hf.init_params(), 0.0
+    )
     np.testing.assert_allclose(phi, [0.75 / np.sqrt(1.25), 0.5], atol=1e-12)
     np.testing.assert_allclose(normal[0], np.array([-0.5, 0, 1]) / np.sqrt(1.25), atol=1e-12)
     np.testing.assert_allclose(normal[1], [0, 0, 1], atol=1e-12)  # flat beyond the grid
 
 
+def test_distances_vmap_over_obstacle_parameters():
+    pts = jnp.array([[0.0, 0.0, 2.0], [0.3, -0.2, 0.1]])
+    for ob in (Plane(), Sphere(), Box(), Capsule(), HeightField()):
+        base = ob.init_params()
+        batch = jax.tree.map(lambda a: jnp.stack([a, a]), base)
+        batch["mu_s"] = jnp.array([0.2, 0.9])
+        phi, normal, vel = jax.vmap(lambda p: ob.distance(pts, p, 0.0))(batch)
+        assert phi.shape == (2, 2) and normal.shape == vel.shape == (2, 2, 3)
+        np.testing.assert_allclose(phi[0], ob.distance(pts, base, 0.0)[0])
+
+
+def test_per_vertex_contact_rule():
+    """Separate, stick, slide and bounce, vertex by vertex, against a plane z = 0."""
+    h, mu_s, mu_k = 0.01, 0.5, 0.3
+    x_n = jnp.zeros((5, 3))
+    v_n = jnp.array([[0, 0, 0], [0, 0, 0], [0, 0, 0], [0, 0, -2.0], [0, 0, 0]])
+    y = jnp.array(
+        [
+            [0.1, 0.0, 0.01],  # above the plane: separating, untouched
+            [0.004, 0.0, -0.01],  # slip 0.004 <= mu_s * depth 0.005: sticks
+            [0.03, 0.04, -0.01],  # slip 0.05 > 0.005: slides back by mu_k * depth
+            [0.0, 0.0, -0.01],  # arrives at 2 m/s with restitution 0.5
+            [0.0, 0.0, -0.01],
+        ]
+    )
+    plane = Plane(mu_s=mu_s, mu_k=mu_k)
+    params = plane.init_params()
+    frame = list(contact._nearest_obstacle(((plane, params),), y, 0.0))
+    frame[5] = jnp.array([0.0, 0.0, 0.0, 0.5, 0.0])  # per-vertex restitution
+    free = jnp.array([[1.0], [1.0], [1.0], [1.0], [0.0]])  # the last vertex is fixed: untouched
+    x = np.asarray(contact._contact_step(y, x_n, v_n, h, tuple(frame), free))
+    np.testing.assert_allclose(x[0], y[0])
+    np.testing.assert_allclose(x[1], [0.0, 0.0, 0.0], atol=1e-15)
+    slip = np.array([0.03, 0.04]) * (1 - mu_k * 0.01 / 0.05)
+    np.testing.assert_allclose(x[2], [slip[0], slip[1], 0.0], atol=1e-15)
+    np.testing.assert_allclose(x[3], [0.0, 0.0, h * 0.5 * 2.0], atol=1e-15)  # leaves at e v_in
+    np.testing.assert_allclose(x[4], y[4])
+
+    # a moving obstacle: sticking means moving with its surface, x_n + h u
+    belt = Moving(Plane(mu_s=mu_s), lambda t: (jnp.eye(3), jnp.array([0.2 * t, 0.0, 0.0])))
+    frame = contact._nearest_obstacle(((belt, belt.init_params()),), y[1:2], 0.0)
+    x = contact._contact_step(y[1:2], x_n[1:2], v_n[1:2], h, frame, free[:1])
+    np.testing.assert_allclose(x, [[0.2 * h, 0.0, 0.0]], atol=1e-15)
+
+
 def test_moving_obstacle_pose_and_velocity():
     def spin(t):
         c, s = jnp.cos(2.0 * t), jnp.sin(2.0 * t)
-        return jnp.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), jnp.array([0.1 * t, 0.0, 0.0])
+        return jnp.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), jnp.array(
+            [0.1 * t, 0.0, 0.0]
+        )
 
     jaw = Moving(Box(half_extents=(1, 1, 1)), spin)
     x = jnp.array([[2.0, 0.0, 0.0]])
@@ -126,13 +188,23 @@ def test_obstacle_validation_and_result_format():
     with pytest.raises(ObstacleError, match="missing"):
         from_dict({"type": "sphere", "center": [0, 0, 0]})
 
-    obstacles = [Plane(normal=(0.1, 0, 1), mu_s=0.8, mu_k=0.6), Sphere(center=(0, 0, 1), radius=0.2),
-                 Box(center=(1, 0, 0), half_extents=(0.1, 0.2, 0.3)), Capsule(restitution=0.3),
-                 HeightField(heights=np.arange(6.0).reshape(3, 2))]
+    obstacles = [
+        Plane(normal=(0.1, 0, 1), mu_s=0.8, mu_k=0.6),
+        Sphere(center=(0, 0, 1), radius=0.2),
+        Box(center=(1, 0, 0), half_extents=(0.1, 0.2, 0.3)),
+        Capsule(restitution=0.3),
+        HeightField(heights=np.arange(6.0).reshape(3, 2)),
+    ]
     dicts = [ob.to_dict() for ob in obstacles]
     mesh = grid_box(cells=(1, 1, 1))
-    result = io.Result(points=mesh.points, tets=mesh.tets, surface=mesh.surface, x=mesh.points[None], dt=0.01,
-                       obstacles=dicts)  # the viewer's format accepts them
+    result = io.Result(
+        points=mesh.points,
+        tets=mesh.tets,
+        surface=mesh.surface,
+        x=mesh.points[None],
+        dt=0.01,
+        obstacles=dicts,
+    )  # the viewer's format accepts them
     assert [o["type"] for o in result.obstacles] == [o.kind for o in obstacles]
     for ob, d in zip(obstacles, dicts):
         back = from_dict(d)
@@ -148,9 +220,19 @@ def test_contact_pd_rejects_bad_settings_and_mismatched_parameters():
     with pytest.raises(ValueError, match="scale"):
         ScaledDiagonal(0.0)
     x = jnp.zeros((4, 3))
-    problem = StepProblem(evaluate=None, precondition=None, matvec=None, diagonal=jnp.ones((4, 1)), x_n=x, v_n=x,
-                          mass=jnp.ones((4, 1)), free=jnp.ones((4, 1)), dt=0.01, time=jnp.asarray(0.0),
-                          obstacles=((Plane(), {"point": jnp.zeros(3)}),))
+    problem = StepProblem(
+        evaluate=None,
+        precondition=None,
+        matvec=None,
+        diagonal=jnp.ones((4, 1)),
+        x_n=x,
+        v_n=x,
+        mass=jnp.ones((4, 1)),
+        free=jnp.ones((4, 1)),
+        dt=0.01,
+        time=jnp.asarray(0.0),
+        obstacles=((Plane(), {"point": jnp.zeros(3)}),),
+    )
     with pytest.raises(ObstacleError, match="init_params"):
         ContactPD().run(problem, x, None, 1e-6, 10)
     with pytest.raises(ObstacleError, match="obstacle 0 is a str"):
@@ -173,9 +255,12 @@ def cube_scene():
     can start a slide that kinetic friction cannot stop (physical stick-slip, not tested here).
     """
     mesh = grid_box((EDGE,) * 3, (4, 4, 4), origin=(-EDGE / 2, -EDGE / 2, 0.0))
-    model, params = build(mesh, Material(E=1e5, nu=0.3, beta=0.01),
-                          options=Options(dt=DT, gravity=(0.0, 0.0, 0.0), tol=1e-8, max_iter=3000),
-                          obstacles=[Plane(mu_s=MU_S, mu_k=MU_K)])
+    model, params = build(
+        mesh,
+        Material(E=1e5, nu=0.3, beta=0.01),
+        options=Options(dt=DT, gravity=(0.0, 0.0, 0.0), tol=1e-8, max_iter=3000, method=TOUCHING),
+        obstacles=[Plane(mu_s=MU_S, mu_k=MU_K)],
+    )
     mass = np.asarray(prepare(model, params).mass)
     return mesh, model, params, mass
 
@@ -217,7 +302,9 @@ def test_cube_sticks_below_and_slides_above_the_static_threshold(cube_scene):
     # tan(theta) = 0.9 mu_s: once set down (edge micro-slip while the load ramps up), it stays
     com, bottom, traj = on_incline(cube_scene, 0.9 * MU_S, MU_S, 50)
     assert np.asarray(traj.info.converged).all()
-    assert np.abs(bottom[40:] - bottom[40]).max() < 1e-7, "contact vertices must not slip while sticking"
+    assert np.abs(bottom[40:] - bottom[40]).max() < 1e-7, (
+        "contact vertices must not slip while sticking"
+    )
     assert np.abs(com[40:] - com[40]).max() < 1e-7, "the body must not creep"
     assert np.abs(bottom).max() < 2e-4
 
@@ -264,8 +351,12 @@ def ball_drop():
     (mass damping ``alpha``) lets it come to rest within the run.
     """
     mesh = examples.ball(radius=0.05, clearance=0.01, size=0.02)
-    model, params = build(mesh, Material(E=2e4, nu=0.3, alpha=5.0), options=Options(dt=DT, tol=1e-8, max_iter=3000),
-                          obstacles=[Plane(mu_s=0.6, mu_k=0.5)])
+    model, params = build(
+        mesh,
+        Material(E=2e4, nu=0.3, alpha=5.0),
+        options=Options(dt=DT, tol=1e-8, max_iter=3000),
+        obstacles=[Plane(mu_s=0.6, mu_k=0.5)],
+    )
     traj = rollout(model, params, initial_state(model, params), n_steps=300)
     return mesh, traj
 
@@ -294,9 +385,15 @@ def test_moving_plate_carries_a_sticking_cube(cube_scene):
     """A plate sliding at 5 cm/s under the cube drags it along through static friction."""
     mesh = cube_scene[0]
     speed = 0.05
-    plate = Moving(Plane(mu_s=MU_S, mu_k=MU_K), lambda t: (jnp.eye(3), jnp.array([speed * t, 0.0, 0.0])))
-    model, params = build(mesh, Material(E=1e5, nu=0.3), options=Options(dt=DT, tol=1e-8, max_iter=3000),
-                          obstacles=[plate])
+    plate = Moving(
+        Plane(mu_s=MU_S, mu_k=MU_K), lambda t: (jnp.eye(3), jnp.array([speed * t, 0.0, 0.0]))
+    )
+    model, params = build(
+        mesh,
+        Material(E=1e5, nu=0.3),
+        options=Options(dt=DT, tol=1e-8, max_iter=3000, method=TOUCHING),
+        obstacles=[plate],
+    )
     traj = rollout(model, params, initial_state(model, params), n_steps=60)
     v = np.asarray(traj.v)[-10:, mesh.regions["zmin"].vertices]
     np.testing.assert_allclose(v[..., 0], speed, atol=1e-6)
@@ -314,16 +411,22 @@ def gmsh_cube():
 def test_default_splitting_converges_where_the_published_ones_fail(gmsh_cube):
     grid = grid_box((EDGE,) * 3, (3, 3, 3))
     for mesh, E, dt in [(gmsh_cube, 1e7, 1 / 30), (gmsh_cube, 1e4, 1e-3), (grid, 1e7, 1 / 30)]:
-        model, params = build(mesh, Material(E=E, nu=0.45), options=Options(dt=dt), obstacles=[Plane()])
+        model, params = build(
+            mesh, Material(E=E, nu=0.45), options=Options(dt=dt), obstacles=[Plane()]
+        )
         rho = splitting_spectral_radius(model, params, ScaledDiagonal())
         mass, stiffness, h = _pd_split(model, params)
         assert rho <= ScaledDiagonal.bound(mass, stiffness.diagonal(), h) < 1, (E, dt, rho)
         assert splitting_spectral_radius(model, params, Naive()) > 2
     # Jacobi (the published D = diag(L)) diverges on the unstructured mesh, stiff and soft alike
     # once the inertia is small; it converges on the structured grid, whose L is an M-matrix.
-    model, params = build(gmsh_cube, Material(E=1e7, nu=0.45), options=Options(dt=1 / 30), obstacles=[Plane()])
+    model, params = build(
+        gmsh_cube, Material(E=1e7, nu=0.45), options=Options(dt=1 / 30), obstacles=[Plane()]
+    )
     assert splitting_spectral_radius(model, params, Diagonal()) > 1.02
-    model, params = build(grid, Material(E=1e7, nu=0.45), options=Options(dt=1 / 30), obstacles=[Plane()])
+    model, params = build(
+        grid, Material(E=1e7, nu=0.45), options=Options(dt=1 / 30), obstacles=[Plane()]
+    )
     assert splitting_spectral_radius(model, params, Diagonal()) < 1
 
 
@@ -337,7 +440,11 @@ def test_full_iteration_diverges_with_naive_and_converges_with_default():
         model, params = build(mesh, Material(E=1e4, nu=0.3), options=opts, obstacles=[Plane()])
         prep = prepare(model, params)
         _, info = jax.jit(lambda prep, s: step(model, prep, s))(prep, initial_state(model, params))
-        residuals[type(splitting).__name__] = (bool(info.converged), float(info.residual), int(info.iterations))
+        residuals[type(splitting).__name__] = (
+            bool(info.converged),
+            float(info.residual),
+            int(info.iterations),
+        )
     assert residuals["ScaledDiagonal"][0], residuals
     # Naive blows up (to NaN after ~360 iterations); the step reports its best iterate, unconverged
     assert not residuals["Naive"][0] and residuals["Naive"][1] > 10 * opts.tol, residuals
@@ -349,12 +456,21 @@ def test_full_iteration_diverges_with_naive_and_converges_with_default():
 def test_gradient_through_sliding_contact_matches_finite_differences():
     """d(slide distance)/d(mu_k) and d/d(incline angle): ContactPD's implicit derivative."""
     mesh = grid_box((EDGE,) * 3, (2, 2, 2), origin=(-EDGE / 2, -EDGE / 2, 0.0))
-    opts = Options(dt=DT, tol=1e-11, max_iter=1500, adjoint=Unrolled())  # differentiates through ContactPD
-    model, params = build(mesh, Material(E=1e5, nu=0.3), options=opts, obstacles=[Plane(mu_s=MU_S, mu_k=MU_K)])
+    # Unrolled differentiates through the iteration method, so ContactPD's own derivative applies
+    opts = Options(dt=DT, tol=1e-11, max_iter=1500, method=TOUCHING, adjoint=Unrolled())
+    model, params = build(
+        mesh, Material(E=1e5, nu=0.3), options=opts, obstacles=[Plane(mu_s=MU_S, mu_k=MU_K)]
+    )
     n_steps = 10
 
     def slide(mu_k, theta):
-        r = jnp.array([[jnp.cos(theta), 0.0, jnp.sin(theta)], [0.0, 1.0, 0.0], [-jnp.sin(theta), 0.0, jnp.cos(theta)]])
+        r = jnp.array(
+            [
+                [jnp.cos(theta), 0.0, jnp.sin(theta)],
+                [0.0, 1.0, 0.0],
+                [-jnp.sin(theta), 0.0, jnp.cos(theta)],
+            ]
+        )
         x0 = jnp.asarray(mesh.points) @ r.T
         p = with_plane(params, normal=r[:, 2], mu_k=mu_k)
         traj = rollout(model, p, initial_state(model, p, x=x0), n_steps=n_steps)
@@ -363,8 +479,10 @@ def test_gradient_through_sliding_contact_matches_finite_differences():
     theta = float(np.arctan(0.7))  # well above the static threshold tan(theta) = 0.5
     grad = jax.grad(slide, argnums=(0, 1))(MU_K, theta)
     eps = 1e-5
-    fd = ((slide(MU_K + eps, theta) - slide(MU_K - eps, theta)) / (2 * eps),
-          (slide(MU_K, theta + eps) - slide(MU_K, theta - eps)) / (2 * eps))
+    fd = (
+        (slide(MU_K + eps, theta) - slide(MU_K - eps, theta)) / (2 * eps),
+        (slide(MU_K, theta + eps) - slide(MU_K, theta - eps)) / (2 * eps),
+    )
     t = n_steps * DT  # rigid sliding from rest: s = g (sin - mu_k cos) t^2 / 2
     assert float(grad[0]) == pytest.approx(-0.5 * G * np.cos(theta) * t**2, rel=0.1)
     for g, f in zip(grad, fd):

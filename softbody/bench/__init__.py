@@ -20,6 +20,7 @@ BENCHMARKS = {
     "pd-cantilever": "forward PD on the shared DiffPD tet cantilever (2673 nodes, 25 frames)",
     "solvers": "time per linear solve against matrix size for each linear solver",
     "skeleton": "time per iteration with 0, 1, 5, 20 skeleton joints relative to the same soft bar without bones",
+    "friction-stability": "spectral radius and convergence of the contact splittings (naive, diagonal, default) over meshes, stiffness and time step",
     "pd-scaling": "time per PD iteration (local + global) against mesh size for each linear solver",
     "gradients": "implicit/unrolled backward cost, finite-difference check, memory against horizon",
 }
