@@ -101,6 +101,13 @@ class Implicit(Adjoint):
         from softbody.model import State
         from softbody.objective import solve_step, step_objective
 
+        if model.obstacles or type(model.method).__name__ == "SkeletonPD":
+            # Contact adds impulses beyond the stationarity of Phi, and a skeleton leaves
+            # joint forces on bone vertices: the contact solver carries its own implicit
+            # derivative (active set held fixed); a skeleton scene needs Unrolled (reverse
+            # mode through this while-loop solve raises JAX's error rather than a wrong answer).
+            return solve_step(model, prep, state, activation, force, static=static)
+
         def forward(prep, x_n, v_n, q_n, t, activation, force):
             sol, info = solve_step(model, prep, State(x_n, v_n, q_n, t), activation, force, static=static)
             return sol, info
