@@ -1,5 +1,43 @@
-"""softbody.control: losses, trajectory optimisation, system identification, co-design.
+"""softbody.control: losses, trajectory optimisation, policies, system identification, co-design.
 
 This folder (``control/`` in the repository) installs as ``softbody.control``; there is
 no top-level ``control`` package, so nothing collides with python-control.
+
+* :mod:`~softbody.control.losses`: composable losses of a trajectory and its controls
+  (:class:`TargetPosition`, :class:`ForwardDistance`, :class:`Tracking`, :class:`Effort`,
+  :class:`Smoothness`; combine with ``+`` and ``*``).
+* :mod:`~softbody.control.trajopt`: open-loop activations on a control grid
+  (:class:`ControlGrid`, :class:`ControlProblem`, :func:`optimize_controls`).
+* :mod:`~softbody.control.policy`: closed-loop MLP policies trained through the
+  simulation (:class:`MLPPolicy`, :class:`Observations`, :func:`policy_rollout`,
+  :func:`train_policy`).
+* :mod:`~softbody.control.sysid`: parameter estimation from marker trajectories
+  (:func:`synthesize`, :class:`Observation`, :func:`identify`).
+* :mod:`~softbody.control.codesign`: design and controls together (:class:`Design`,
+  :class:`CoDesignProblem`, :func:`codesign`).
+* :mod:`~softbody.control.baselines`: CMA-ES on the same variables (:func:`cmaes`).
+* :mod:`~softbody.control.optimize`: the shared optax loop with progress and
+  checkpoint/resume (:func:`minimize`).
 """
+
+from .baselines import CMAResult, cmaes
+from .codesign import CoDesignProblem, CoDesignResult, Design, codesign, project_capped_simplex
+from .errors import ControlError
+from .losses import (Effort, ForwardDistance, Loss, Scaled, Smoothness, Sum, TargetPosition, Tracking,
+                     centroid_weights, region_vertices)
+from .optimize import OptimizeResult, minimize
+from .policy import MLPPolicy, Observations, PolicyResult, policy_rollout, train_policy
+from .sysid import ESTIMABLE, Observation, SysIdProblem, SysIdResult, identify, synthesize
+from .trajopt import ControlGrid, ControlProblem, TrajOptResult, optimize_controls
+
+__all__ = [
+    "ControlError",
+    "Loss", "Sum", "Scaled", "TargetPosition", "ForwardDistance", "Tracking", "Effort", "Smoothness",
+    "region_vertices", "centroid_weights",
+    "OptimizeResult", "minimize",
+    "ControlGrid", "ControlProblem", "TrajOptResult", "optimize_controls",
+    "MLPPolicy", "Observations", "PolicyResult", "policy_rollout", "train_policy",
+    "ESTIMABLE", "Observation", "SysIdProblem", "SysIdResult", "identify", "synthesize",
+    "Design", "CoDesignProblem", "CoDesignResult", "codesign", "project_capped_simplex",
+    "CMAResult", "cmaes",
+]
