@@ -35,8 +35,11 @@ def session(name: str = "softbody") -> Iterator[None]:
     with _LOCK:
         owner = not gmsh.isInitialized()
         main = threading.current_thread() is threading.main_thread()
-        # gmsh.finalize() does not restore the Ctrl-C handler it replaced: keep it here.
+        # gmsh replaces the Ctrl-C handler and resets SIGPIPE to its default (which kills the
+        # process on a write to a closed socket, where Python expects EPIPE); gmsh.finalize()
+        # restores neither, so both are restored here.
         sigint = signal.getsignal(signal.SIGINT) if main else None
+        sigpipe = signal.getsignal(signal.SIGPIPE) if main else None
         if owner:
             gmsh.initialize(
                 readConfigFiles=False,
@@ -62,6 +65,8 @@ def session(name: str = "softbody") -> Iterator[None]:
                 gmsh.finalize()
             if main and sigint is not None:
                 signal.signal(signal.SIGINT, sigint)
+            if main and sigpipe is not None:
+                signal.signal(signal.SIGPIPE, sigpipe)
 
 
 def gmsh_error(what: str, err: Exception, fix: str) -> MeshError:

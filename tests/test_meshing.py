@@ -343,3 +343,22 @@ def test_cli_geometry_script(tmp_path, capsys):
 def test_cli_quality_threshold(capsys):
     assert cli.main(["mesh", "cube", "--min-quality", "0.9"]) == 1
     assert "--min-quality" in capsys.readouterr().err
+
+
+def test_meshing_leaves_signal_handling_as_python_set_it():
+    """gmsh resets SIGPIPE and SIGINT; a later write to a closed pipe must raise, not kill."""
+    import os
+    import signal
+
+    from softbody.meshing import examples
+
+    before = signal.getsignal(signal.SIGINT)
+    examples.cube()
+    assert signal.getsignal(signal.SIGINT) is before
+    r, w = os.pipe()
+    os.close(r)
+    try:
+        with pytest.raises(BrokenPipeError):
+            os.write(w, b"x")
+    finally:
+        os.close(w)
