@@ -225,30 +225,83 @@ def mat_to_quat(r: Mat) -> Quat:
     return q * jax.lax.rsqrt(q[0] ** 2 + q[1] ** 2 + q[2] ** 2 + q[3] ** 2)
 
 
-def cold_start(f: Mat, iterations: int = 10) -> Quat:
+def _smallest_eigenvector(s: Mat) -> jax.Array:
+    """Unit eigenvectors ``(3, T)`` of the smallest eigenvalue of symmetric ``(3, 3, T)`` ``s``.
+
+    Closed form: the smallest eigenvalue by the trigonometric formula for symmetric 3x3
+    matrices (Smith 1961), then the eigenvector as the largest cross product of two rows
+    of ``s - lambda I`` (its null space). Accurate to ``~eps |s| / gap`` where ``gap``
+    separates the two smallest eigenvalues. Where they coincide every vector of their
+    plane is an eigenvector and one of them is returned; where all three coincide, the
+    first axis.
+    """
+    q = trace(s) / 3.0
+    p1 = s[0, 1] ** 2 + s[0, 2] ** 2 + s[1, 2] ** 2
+    p2 = (s[0, 0] - q) ** 2 + (s[1, 1] - q) ** 2 + (s[2, 2] - q) ** 2 + 2.0 * p1
+    p = jnp.sqrt(p2 / 6.0)
+    safe_p = jnp.where(p > 0, p, 1.0)
+    b = (s - jnp.eye(3, dtype=s.dtype)[:, :, None] * q) / safe_p
+    r = jnp.clip(det3(b) / 2.0, -1.0, 1.0)
+    phi = jnp.arccos(r) / 3.0
+    lam = q + 2.0 * p * jnp.cos(phi + 2.0 * jnp.pi / 3.0)
+    a = s - jnp.eye(3, dtype=s.dtype)[:, :, None] * lam
+    rows = [a[0], a[1], a[2]]  # each (3, T)
+
+    def cross(u, v):
+        return jnp.stack([u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2],
+                          u[0] * v[1] - u[1] * v[0]])
+
+    cands = jnp.stack([cross(rows[0], rows[1]), cross(rows[0], rows[2]),
+                       cross(rows[1], rows[2])])  # (3 candidates, 3, T)
+    norms = jnp.sum(cands ** 2, axis=1)  # (3, T)
+    best = jnp.take_along_axis(cands, jnp.argmax(norms, axis=0)[None, None, :], axis=0)[0]
+    best_norm = jnp.max(norms, axis=0)
+    # Two smallest eigenvalues (numerically) equal: a - lambda I has rank <= 1, so any
+    # vector orthogonal to its largest row is an eigenvector of the smallest eigenvalue.
+    row_norms = jnp.stack([jnp.sum(rw ** 2, axis=0) for rw in rows])
+    big = jnp.take_along_axis(jnp.stack(rows), jnp.argmax(row_norms, axis=0)[None, None, :],
+                              axis=0)[0]
+    axis = jnp.eye(3, dtype=s.dtype)[jnp.argmin(jnp.abs(big), axis=0)].T  # (3, T)
+    other = cross(big, axis)
+    scale2 = jnp.max(row_norms, axis=0)
+    degenerate = best_norm <= (1e-12 * scale2) ** 2 + 1e-300
+    v = jnp.where(degenerate, other, best)
+    all_equal = scale2 <= 1e-24 * (q ** 2) + 1e-300
+    v = jnp.where(all_equal, jnp.eye(3, dtype=s.dtype)[:, :1], v)
+    return v * jax.lax.rsqrt(jnp.sum(v ** 2, axis=0) + 1e-300)
+
+
+def cold_start(f: Mat, iterations: int = 12) -> Quat:
     """Quaternions of the maximising rotation of ``F`` with no warm start, ``(4, T)``.
 
     Scaled Newton iteration for the orthogonal polar factor ``Q`` (Higham:
-    ``X <- (g X + X^-T / g) / 2``, ``g = |det X|^(-1/3)``), then, where ``det F < 0``, the
+    ``X <- (g X + X^-T / g) / 2``, ``g = |det X|^(-1/3)``), then, where ``det Q < 0``, the
     reflection is turned into the rotation-variant factor ``Q (I - 2 v v^T)`` with ``v`` the
-    eigenvector of ``S = Q^T F`` of smallest eigenvalue (the dominant eigenvector of
-    ``adj(S)``, by repeated squaring). Use it to initialise :func:`rotation`.
+    eigenvector of ``S = Q^T F`` of smallest eigenvalue (closed form). A (nearly) flat
+    ``F`` is regularised so that the iteration stays finite: ``|det X|`` is held at least
+    ``1e-12 |X|^3``; the polar factor's sign along the flat direction is then arbitrary
+    and the flip restores the maximiser. Use it to initialise :func:`rotation`.
+
+    Arguments:
+        f: ``(3, 3, T)`` deformation gradients.
+        iterations: scaled Newton iterations (quadratic convergence; 12 is ample for
+            condition numbers up to ~1e12).
+
+    Returns:
+        ``(4, T)`` unit quaternions.
     """
-    x = f
-    for _ in range(iterations):
+
+    def higham(_, x):
         c = _cofactor(x)
         d = det3(x)
-        d = jnp.where(jnp.abs(d) > 1e-300, d, 1e-300)
+        floor = 1e-12 * dot(x, x) ** 1.5 + 1e-300
+        d = jnp.where(jnp.abs(d) > floor, d, jnp.where(d < 0, -floor, floor))
         g = jnp.abs(d) ** (-1.0 / 3.0)
-        x = 0.5 * (g * x + c / (g * d))
+        return 0.5 * (g * x + c / (g * d))
+
+    x = jax.lax.fori_loop(0, iterations, higham, f)
     s = _sym(matmul(transpose(x), f))
-    m = _cofactor(s)  # adj(S) for symmetric S; eigenvalues s_j s_k
-    for _ in range(4):
-        m = matmul(m, m)
-        m = m / (jnp.sqrt(dot(m, m)) + 1e-300)
-    col_norms = m[0] ** 2 + m[1] ** 2 + m[2] ** 2  # (3, T): squared norm of each column
-    v = jnp.take_along_axis(m, jnp.argmax(col_norms, axis=0)[None, None, :], axis=1)[:, 0]
-    v = v * jax.lax.rsqrt(v[0] ** 2 + v[1] ** 2 + v[2] ** 2 + 1e-300)
+    v = _smallest_eigenvector(s)
     xv = jnp.einsum("ijt,jt->it", x, v)
     flipped = x - 2 * xv[:, None, :] * v[None, :, :]
     r = jnp.where(det3(x) < 0, flipped, x)

@@ -223,13 +223,9 @@ def test_reverse_and_second_derivatives(second_derivatives, name):
 
 
 # ------------------------------------------------------------------------------------
-# Known defects of the cold start (reported to the core; remove the marks when fixed)
+# Hard cold starts: close small singular values of inverted F, flat and degenerate tets
 # ------------------------------------------------------------------------------------
 
-@pytest.mark.xfail(strict=True, reason=(
-    "cold_start separates the two smallest singular values of an inverted F by 4 squarings "
-    "of adj(S) (error ~ (s3/s2)^16); within ~2% of each other the flip picks the wrong axis "
-    "and polar's 3 Newton steps do not recover (H is nearly singular there)"))
 def test_polar_inverted_with_close_small_singular_values():
     """Unique maximisers (s2 + s3 = 0.01) in 20 random orientations."""
     fs = [_with_singular_values([1.0, 0.9, -0.89]) for _ in range(20)]
@@ -238,11 +234,26 @@ def test_polar_inverted_with_close_small_singular_values():
         np.testing.assert_allclose(r[:, :, k], _svd_rotation(f), atol=1e-10)
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "cold_start's scaled Newton iteration divides by det F: a flat tet with det F = 0 "
-    "exactly gives NaN although its maximising rotation is unique (s2 + s3 > 0)"))
 def test_polar_of_a_flat_tet_is_finite():
     f = np.diag([2.0, 1.0, 0.0])  # a tet squashed flat onto the xy-plane
     r = np.asarray(_polar(_batch([f])))[:, :, 0]
     assert np.all(np.isfinite(r))
     np.testing.assert_allclose(r, np.eye(3), atol=1e-12)
+
+
+def test_polar_of_flat_and_nearly_flat_tets_in_random_orientations():
+    """det F = 0 or ~1e-14 (rank 2): the maximiser is unique (s1 + s2 > 0) and found."""
+    fs = [_with_singular_values([2.0, 0.7, 0.0]) for _ in range(10)]
+    fs += [_with_singular_values([1.5, 1.0, sgn * 1e-14]) for sgn in (1, -1) for _ in range(5)]
+    r = np.asarray(_polar(_batch(fs)))
+    for k, f in enumerate(fs):
+        np.testing.assert_allclose(r[:, :, k], _svd_rotation(f), atol=1e-9)
+
+
+def test_polar_inverted_with_equal_small_singular_values_reaches_the_maximum():
+    """s2 = |s3|, det F < 0: the maximiser is not unique, but tr(R^T F) must be maximal."""
+    fs = [_with_singular_values([1.0, 0.8, -0.8]) for _ in range(10)]
+    r = np.asarray(_polar(_batch(fs)))
+    for k, f in enumerate(fs):
+        assert abs(np.linalg.det(r[:, :, k]) - 1.0) < 1e-12
+        assert np.trace(r[:, :, k].T @ f) == pytest.approx(1.0, abs=1e-10)
