@@ -40,11 +40,28 @@ class MuscleParams(eqx.Module):
 
 
 class MusclePrep(eqx.Module):
-    tets: Array  # (m,) int element indices
+    """Per-rollout data of a :class:`Muscle`.
+
+    The integer tet and channel indices stay on the term (a static field, so they are
+    numpy constants under every transformation): traced integer arrays would leak out of
+    ``jax.closure_convert`` in the contact solver's implicit derivative, which hoists only
+    floating-point values.
+    """
+
     local_matrices: Array  # (m, 4, 4)
     coef: Array  # (m,) V k w
     fibre: Array  # (3, m)
-    channel: Array  # (m,) int channel of each tet
+    term: "Muscle" = eqx.field(static=True)
+
+    @property
+    def tets(self) -> np.ndarray:
+        """``(m,)`` int element indices."""
+        return self.term.tets
+
+    @property
+    def channel(self) -> np.ndarray:
+        """``(m,)`` int channel of each tet."""
+        return self.term.channel
 
 
 @dataclass(frozen=True, eq=False)
@@ -198,7 +215,7 @@ class Muscle:
         gm = jnp.einsum("ajm,jm->am", g, fibre)  # (4, m)
         coef = volume[idx] * p.stiffness * p.weights
         local = jnp.einsum("am,bm,m->mab", gm, gm, coef)
-        return MusclePrep(tets=idx, local_matrices=local, coef=coef, fibre=fibre, channel=jnp.asarray(self.channel))
+        return MusclePrep(local_matrices=local, coef=coef, fibre=fibre, term=self)
 
     def energy_and_stress(self, f: Array, prep: MusclePrep, activation: Array) -> tuple[Array, Array]:
         """Energy ``(m,)`` and ``dE/dF`` ``(3, 3, m)`` for ``f`` ``(3, 3, m)`` and activations ``(c,)``."""
