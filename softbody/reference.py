@@ -384,8 +384,9 @@ def newton_rollout(model: Model, params: Params, state0: State, n_steps: int | N
         vs.append(state.v)
         stats.append(step_stats)
     iters, evals, residuals = (jnp.asarray(c) for c in zip(*stats))
+    inverted = jax.vmap(lambda x: jnp.sum(rot.det3(deformation_gradient(model, prep.dminv, x)) <= 0))(jnp.stack(xs[1:]))
     info = StepInfo(iterations=iters, evaluations=evals, residual=residuals,
-                    converged=jnp.ones(n_steps, bool))
+                    converged=jnp.ones(n_steps, bool), inverted=inverted)
     return Trajectory(x=jnp.stack(xs), v=jnp.stack(vs), info=info)
 
 
