@@ -19,6 +19,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "view": ("softbody.viewer", "open a result in the browser viewer (viser)"),
     "render": ("softbody.render", "render a result offscreen to PNG, GIF or MP4 (pyvista)"),
     "bench": ("softbody.bench", "run a benchmark; writes DIR/<name>.json and a PNG"),
+    "advise": ("softbody.advisor", "pick the cheapest mesh, time step and PD tolerance that meet an error"),
 }
 
 
