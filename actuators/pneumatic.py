@@ -18,8 +18,8 @@ Two models, one per way a soft roboticist thinks about air:
   (a balloon's load, not a dead load). The term adds nothing to the PD matrix.
   A volume-controlled variant (fluid pumped in by volume) is :class:`CavityVolume`.
 * :class:`PneumaticCells`: the cell model of Qiao et al. (2021): the volume projection of
-  the tagged tets targets ``det F = a`` instead of 1 (through ``tr(R^T F) = 3 s`` with
-  ``s = a^(w/3)``, ``w`` the cell's design weight). The shape term still pulls each cell
+  the tagged tets targets ``det F = a^w`` instead of 1 (``w`` the cell's design weight;
+  ``s = a^(w/3)`` below is the uniform stretch of that volume). The shape term still pulls each cell
   towards a rotation: a free body made only of cells settles at ``F = lambda I`` with
   ``lambda = (w_s + w_v s) / (w_s + w_v)`` (``w_s = 2 mu``, ``w_v = 3 lambda_Lame``), so
   ``det F`` approaches ``a`` as ``nu`` approaches 0.5. It changes only the local step,
@@ -358,12 +358,12 @@ class PneumaticCells:
 
     A volume-target term: for cell ``e`` on channel ``k`` with activation ``a_k`` (the
     target volume ratio; 1 = rest, 2 = doubled, 0.5 = halved) and design weight
-    ``w_e``, the core's volume term aims at ``tr(R^T F) = 3 s`` with
-    ``s = a_k^(w_e / 3)``, i.e. ``det F = a_k^(w_e)`` for a free cell under a dominant
-    volume term. ``a`` is clipped to ``[min_expansion, max_expansion]`` (default
-    ``[0.2, 5]``, > 0; outside, its gradient is zero). Note that an activation of 0 (the
-    default of an omitted control) asks for the strongest contraction, not for rest:
-    pass ones for a neutral state.
+    ``w_e``, the core's volume term aims at ``det F = s^3 = a_k^(w_e)`` with
+    ``s = a_k^(w_e / 3)`` (reached by a free cell under a dominant volume term; see
+    :func:`softbody.elastic.corotated`). ``a`` is clipped to
+    ``[min_expansion, max_expansion]`` (default ``[0.2, 5]``, > 0; outside, its gradient
+    is zero). Note that an activation of 0 (the default of an omitted control) asks for
+    the strongest contraction, not for rest: pass ones for a neutral state.
 
     Attributes:
         tets: ``(m,)`` cell tets (each at most once).

@@ -57,18 +57,71 @@ def scatter_stress(model, dminv: Array, stress: Array) -> Array:
     return jnp.zeros((model.n_vertices, 3), stress.dtype).at[jnp.asarray(model.mesh.tets)].add(per_vertex)
 
 
+#: Newton steps of :func:`volume_shift`: from its upper-bound start they reach round-off
+#: in at most 10 on random ``F = I + 3 N(0, 1)`` (4 to 7 for strains below 30 %).
+_SHIFT_STEPS = 12
+
+
+@jax.custom_jvp
+def volume_shift(s: Array, det_target: Array) -> Array:
+    """The uniform shift ``c`` ``(t,)`` with ``det(S + c I) = D`` and ``S + c I`` positive definite.
+
+    Arguments:
+        s: symmetric ``(3, 3, t)`` (``sym(R^T F)``, whose eigenvalues are the signed
+            singular values of ``F``); det_target: ``D > 0``, ``(t,)``.
+
+    ``p(c) = det(S + c I) - D`` is a cubic in the invariants of ``S``, increasing and convex
+    for ``c > -sigma_min``, where its root is unique: Newton's method from a point right of
+    the root (``c0 = D^(1/3) - m + sqrt(2/3) |dev S|``, which makes ``sigma_min + c0 >=
+    D^(1/3)``) decreases monotonically onto it. No eigendecomposition is needed. The
+    derivative follows from the implicit function theorem:
+    ``dc = (dD - cof(S + c I) : dS) / tr cof(S + c I)``.
+    """
+    eye = jnp.eye(3, dtype=s.dtype)[:, :, None]
+    i1 = rot.trace(s)
+    i2 = 0.5 * (i1 * i1 - rot.dot(s, s))
+    i3 = rot.det3(s)
+    dev = s - eye * (i1 / 3.0)
+    c = jnp.cbrt(det_target) - i1 / 3.0 + jnp.sqrt(2.0 / 3.0 * rot.dot(dev, dev))
+
+    def newton(_, c):
+        p = ((c + i1) * c + i2) * c + i3 - det_target
+        return c - p / ((3.0 * c + 2.0 * i1) * c + i2)
+
+    return jax.lax.fori_loop(0, _SHIFT_STEPS, newton, c)
+
+
+@volume_shift.defjvp
+def _volume_shift_jvp(primals, tangents):
+    s, det_target = primals
+    ds, dd = tangents
+    c = volume_shift(s, det_target)
+    cof = rot._cofactor(s + c * jnp.eye(3, dtype=s.dtype)[:, :, None])
+    return c, (dd - rot.dot(cof, ds)) / rot.trace(cof)
+
+
 def corotated(f: Array, r: Array, volume: Array, w_s: Array, w_v: Array, target=3.0) -> tuple[Array, Array]:
     """Corotated + volume energy per tet ``(t,)`` and its stress ``dE/dF`` ``(3, 3, t)``.
 
+    The volume term is ``V w_v / 2 |F - P_v(F)|^2 = 3/2 V w_v c^2`` with
+    ``P_v(F) = F + c R`` the shift of all signed singular values by ``c`` onto
+    ``det = D`` (:func:`volume_shift`; see :mod:`softbody.material`). Its stress is
+    ``-3 V w_v c R cof(S + c I) / tr cof(S + c I)`` with ``S = sym(R^T F)``.
+
     Arguments:
-        f: deformation gradients ``(3, 3, t)``; r: their rotations ``(3, 3, t)``;
-        volume, w_s, w_v: ``(t,)``.
-        target: the volume term's target ``tr(R^T F)``: 3 (rest volume), or ``(t,)``.
+        f: deformation gradients ``(3, 3, t)``; r: their rotations ``(3, 3, t)`` (the
+            maximisers of ``tr(R^T F)``); volume, w_s, w_v: ``(t,)``.
+        target: ``3 s``, where the volume term aims at ``det F = s^3``: 3 (rest volume),
+            or ``(t,)``.
     """
     d = f - r
-    c = rot.dot(r, f) - target  # tr(R^T F) - target
-    energy = volume * (0.5 * w_s * rot.dot(d, d) + w_v / 6.0 * c * c)
-    stress = volume * (w_s * d + (w_v * c / 3.0) * r)
+    a = rot.matmul(rot.transpose(r), f)
+    s = 0.5 * (a + rot.transpose(a))
+    det_target = jnp.broadcast_to((jnp.asarray(target, f.dtype) / 3.0) ** 3, volume.shape)
+    c = volume_shift(s, det_target)
+    cof = rot._cofactor(s + c * jnp.eye(3, dtype=f.dtype)[:, :, None])
+    energy = volume * (0.5 * w_s * rot.dot(d, d) + 1.5 * w_v * c * c)
+    stress = volume * (w_s * d - (3.0 * w_v * c / rot.trace(cof)) * rot.matmul(r, cof))
     return energy, stress
 
 

@@ -6,13 +6,22 @@ Energy per tet (volume ``V``, deformation gradient ``F``, its rotation ``R``, ma
     psi(F) = V * [ w_s / 2 * ||F - R||^2  +  w_v / 2 * ||F - P_v(F)||^2 ]
 
 * The **corotated (ARAP) term** projects ``F`` onto SO(3).
-* The **volume term** projects ``F`` onto the set ``{G : tr(R_G^T G) = 3}`` (the sum of
-  the signed singular values is 3). Its closest point keeps the singular vectors and shifts
-  every singular value by the same amount: ``P_v(F) = F + c R`` with
-  ``c = (3 - tr(R^T F)) / 3``, so ``||F - P_v||^2 = (tr(R^T F) - 3)^2 / 3``. It is an exact
-  Euclidean projection (a PD constraint in the strict sense) and costs nothing once ``R``
-  is known; together the two terms are the corotated linear-elastic energy
-  ``mu ||F - R||^2 + lambda / 2 (tr(R^T F) - 3)^2``.
+* The **volume term** projects ``F`` onto the volume-preserving matrices
+  ``{G : det G = 1}`` along ``R``: ``P_v(F) = F + c R`` shifts every signed singular value
+  by the same ``c``, the root of ``det(S + c I) = 1`` (``S = sym(R^T F)``) with ``S + c I``
+  positive definite (:func:`softbody.elastic.volume_shift`, a Newton iteration on a
+  cubic in the invariants of ``S``: no eigendecomposition). So
+  ``||F - P_v||^2 = 3 c^2``. Near rest ``c = (3 - tr(R^T F)) / 3 + O(|H|^2)``, and the two
+  terms are the corotated linear-elastic energy
+  ``mu ||F - R||^2 + lambda / 2 (tr(R^T F) - 3)^2`` to second order. At large strain
+  the target matters: a wall stretched in its plane can only thin until its stretches
+  multiply to 1. (Targeting ``tr(R^T F) = 3`` instead, the sum of the stretches, makes
+  the stress linear in the stretches: a free wall stretched by ``1 + e`` in both in-plane
+  directions thins to ``1 - 2 nu e / (1 - nu)``, zero at ``e = 61 %`` for nu = 0.45; the
+  example finger's chamber wall inverted at 100 % strain, 23 kPa. The
+  shift along ``R`` is not the closest point of ``{det = 1}``, which would need an
+  eigendecomposition per tet; its distance is larger, by up to ``sqrt(3)`` for a thin
+  wall, so the term's curvature can exceed ``w_v``, the weight in the PD matrix.)
 
 **Physical weights.** Write ``F = I + H`` with ``|H|`` small and ``eps = sym(H)``. Then
 ``R = I + skew(H) + O(|H|^2)``, so ``F - R = eps + O(|H|^2)`` and

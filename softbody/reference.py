@@ -64,7 +64,8 @@ def _activation_slices(model: Model, activation) -> tuple[Array, ...]:
 
 
 def _volume_target(model: Model, prep: Prepared, slices):
-    """The volume term's target ``tr(R^T F)``: 3, or ``(t,)`` where terms set volume targets."""
+    """The volume term's target ``3 s`` (it aims at ``det F = s^3``): 3, or ``(t,)`` where
+    terms set volume targets."""
     target = 3.0
     for term, tp, a in zip(model.terms, prep.terms, slices):
         if hasattr(term, "volume_targets"):

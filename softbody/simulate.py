@@ -18,7 +18,7 @@ Actuator terms (``model.terms``) come in three kinds, told apart by the methods 
   pressure as ``-p V_cavity(x)``); they leave the matrix alone (``prep.local_matrices``
   is ``None``).
 * ``volume_targets(prep, a) -> (tets (m,), s (m,))``: the volume term of those tets
-  targets ``tr(R^T F) = 3 s`` instead of 3 (pneumatic cells: ``s = a^(1/3)``).
+  targets ``det F = s^3`` instead of 1 (pneumatic cells: ``s = a^(1/3)``).
 
 Every term also has ``channel_names``, ``init_params()`` and
 ``prepare(model, params, dminv, volume)``.
@@ -46,7 +46,36 @@ Array = jax.Array
 
 
 class SimulationError(RuntimeError):
-    """The simulation produced non-finite values; the message names the step and quantity."""
+    """The simulation produced non-finite values or inverted tets; the message names the
+    step, the quantity and the actuator activations there."""
+
+
+#: What to try when a simulation inverts tets or blows up under an actuator load.
+_FIXES = ("Lower the load or the activations, refine the mesh where it deforms most, or stiffen "
+          "the material (a pressurised cavity past its pressure maximum balloons without bound: "
+          "drive it by volume with CavityVolume instead)")
+
+
+def _inverted(model: Model, prep: Prepared, x) -> Array:
+    """Number of tets with ``det F <= 0`` at positions ``x`` ``(n, 3)``."""
+    from softbody.elastic import deformation_gradient
+    from softbody.rotation import det3
+
+    return jnp.sum(det3(deformation_gradient(model, prep.dminv, x)) <= 0)
+
+
+def _describe(model: Model, activation) -> str:
+    """``"activations {channel: value, ...}"`` (or ``"no actuators"``) for error messages."""
+    if model.n_channels == 0:
+        return "no actuators"
+    values = np.asarray(activation).ravel()
+    pairs = (f"{n!r}: {v:.6g}" for n, v in zip(model.channel_names, values))
+    return "activations {" + ", ".join(pairs) + "}"
+
+
+def _row(controls, k: int):
+    """Row ``k`` of the controls (``()`` when there are none)."""
+    return () if controls is None else controls[k]
 
 
 class Trajectory(eqx.Module):
@@ -119,6 +148,7 @@ def _rollout(model: Model, params: Params, state0: State, controls, forces, n_st
         return (new, bad | ~finite), (new.x, new.v, info, bad | ~finite)
 
     inputs = (controls, forces)
+    inverted0 = _inverted(model, prep, state0.x)
     carry = (state0, jnp.asarray(False))
     if model.options.adjoint.segment_checkpoints and n_steps > 3:
         # Nested scans: the outer one keeps only segment-start states; each segment is
@@ -136,7 +166,7 @@ def _rollout(model: Model, params: Params, state0: State, controls, forces, n_st
         _, (xs, vs, info, bad) = jax.lax.scan(body, carry, inputs, length=n_steps)
     xs = jnp.concatenate([state0.x[None], xs])
     vs = jnp.concatenate([state0.v[None], vs])
-    return Trajectory(x=xs, v=vs, info=info), bad
+    return Trajectory(x=xs, v=vs, info=info), bad, inverted0
 
 
 def rollout(model: Model, params: Params, state0: State, controls=None, forces=None,
@@ -156,14 +186,19 @@ def rollout(model: Model, params: Params, state0: State, controls=None, forces=N
 
     Raises:
         SceneError: bad control or force shapes (before compiling).
-        SimulationError: the state became non-finite; names the first bad step and quantity.
-            Under an outer ``jit``/``grad`` the check cannot raise a Python error; it
-            becomes an ``equinox.error_if`` runtime error instead.
+        SimulationError: the state became non-finite, or a step ended with more inverted
+            tets (``det F <= 0``) than ``state0`` had; names the first bad step, the
+            quantity and the activations there. Under an outer ``jit``/``grad`` the check
+            cannot raise a Python error; it becomes an ``equinox.error_if`` runtime error
+            instead.
     """
     controls, forces, n_steps = _check_controls(model, controls, forces, n_steps)
-    traj, bad = _rollout(model, params, state0, controls, forces, n_steps)
-    if isinstance(bad, jax.core.Tracer):
+    traj, bad, inverted0 = _rollout(model, params, state0, controls, forces, n_steps)
+    new_inversions = traj.info.inverted > inverted0
+    if isinstance(bad, jax.core.Tracer) or isinstance(inverted0, jax.core.Tracer):
         xs = eqx.error_if(traj.x, jnp.any(bad), "softbody: the simulation became non-finite (NaN/inf)")
+        xs = eqx.error_if(xs, jnp.any(new_inversions),
+                          f"softbody: the simulation inverted tets. {_FIXES}.")
         return Trajectory(x=xs, v=traj.v, info=traj.info)
     bad = np.asarray(bad)
     if bad.any():
@@ -173,8 +208,14 @@ def rollout(model: Model, params: Params, state0: State, controls=None, forces=N
         res = float(traj.info.residual[k])
         raise SimulationError(
             f"step {k}: {what} became non-finite (step residual {res:.3g}, "
-            f"{int(traj.info.iterations[k])} iterations). Reduce dt, check loads and activations, "
-            "or raise max_iter.")
+            f"{int(traj.info.iterations[k])} iterations; {_describe(model, _row(controls, k))}). "
+            f"Reduce dt, check loads and activations, or raise max_iter. {_FIXES}.")
+    new_inversions = np.asarray(new_inversions)
+    if new_inversions.any():
+        k = int(np.argmax(new_inversions))
+        raise SimulationError(
+            f"step {k}: {int(traj.info.inverted[k])} tets inverted (det F <= 0; the initial "
+            f"state had {int(inverted0)}) under {_describe(model, _row(controls, k))}. {_FIXES}.")
     return traj
 
 
@@ -193,10 +234,31 @@ def solve_static(model: Model, params: Params, force=None, activation=None, x0=N
 
     Raises:
         SceneError: when the model has no fixed vertices (the equilibrium is not unique).
+        SimulationError: the solution is non-finite (e.g. the load exceeds what the body can
+            carry, such as a cavity pressure past its maximum, where no equilibrium exists),
+            or has more inverted tets than ``x0``; names the count and the activations.
+            Under an outer ``jit``/``grad`` it is an ``equinox.error_if`` runtime error.
     """
     if len(model.fixed) == 0:
         raise SceneError("a static solve needs fixed vertices (build the model with fixed=...)")
-    return _solve_static(model, params, force, _activation(model, activation), x0)
+    activation = _activation(model, activation)
+    x, info, inverted0 = _solve_static(model, params, force, activation, x0)
+    finite = jnp.all(jnp.isfinite(x))
+    if isinstance(x, jax.core.Tracer) or isinstance(info.inverted, jax.core.Tracer):
+        x = eqx.error_if(x, ~finite, "softbody: the static solve became non-finite (NaN/inf)")
+        x = eqx.error_if(x, info.inverted > inverted0,
+                         f"softbody: the static solve inverted tets. {_FIXES}.")
+        return x, info
+    if not bool(finite):
+        raise SimulationError(
+            f"the static solve became non-finite after {int(info.iterations)} iterations under "
+            f"{_describe(model, activation)}: no equilibrium was found near x0 (the load may "
+            f"exceed what the body can carry). {_FIXES}.")
+    if int(info.inverted) > int(inverted0):
+        raise SimulationError(
+            f"the static solution has {int(info.inverted)} inverted tets (det F <= 0; x0 had "
+            f"{int(inverted0)}) under {_describe(model, activation)}. {_FIXES}.")
+    return x, info
 
 
 @functools.partial(jax.jit, static_argnums=0)
@@ -206,4 +268,4 @@ def _solve_static(model, params, force, activation, x0):
     prep = prepare(model, params, static=True)
     state = initial_state(model, params, x=x0)
     sol, info = model.options.adjoint.solve(model, prep, state, activation, force, static=True)
-    return sol.x, info
+    return sol.x, info, _inverted(model, prep, state.x)
