@@ -105,7 +105,7 @@ def batch_sweep(cells, batches, steps: int, repeats: int, dt: float = 0.01) -> l
     for b in batches:
         moduli = jnp.geomspace(5e5, 2e6, b)[:, None]
         batched = eqx.tree_at(lambda p: p.E, params, moduli)
-        axes = eqx.tree_at(lambda p: p.E, jax.tree.map(lambda _: None, params), 0)
+        axes = eqx.tree_at(lambda p: p.E, jax.tree.map(lambda _: None, params), 0, is_leaf=lambda x: x is None)
 
         def run(p, s):
             return simulate.rollout(model, p, s, n_steps=steps)
