@@ -332,6 +332,7 @@ class Prepared(eqx.Module):
     data: Array  # (nnz,) PD matrix values
     factor: object  # linear-solver factor
     inertia: Array  # scalar: 1/h^2 for dynamics, 0 for statics
+    method: object = None  # the iteration method's per-rollout data (IterationMethod.prepare)
 
 
 def prepare(model: Model, params: Params, *, static: bool = False) -> Prepared:
@@ -375,4 +376,4 @@ def prepare(model: Model, params: Params, *, static: bool = False) -> Prepared:
     return Prepared(dminv=dminv, volume=volume, mass=mass[:, None], mass_alpha=mass_alpha[:, None],
                     w_s=w_s, w_v=w_v, w_b=w_b, x_rest=x_rest, terms=term_prep,
                     obstacles=tuple(params.obstacles), data=data,
-                    factor=factor, inertia=inertia)
+                    factor=factor, inertia=inertia, method=model.method.prepare(model, data, factor))

@@ -123,7 +123,7 @@ def solve_step(model: Model, prep: Prepared, state: State, activation, force, *,
         matvec=lambda x: pattern.matvec(prep.data, x),
         diagonal=prep.data[jnp.asarray(model.diag_to_data)][:, None],
         x_n=state.x, v_n=state.v, mass=prep.mass, free=free, dt=0.0 if static else opts.dt,
-        time=state.t, obstacles=tuple(zip(model.obstacles, prep.obstacles)))
+        time=state.t, obstacles=tuple(zip(model.obstacles, prep.obstacles)), prepared=prep.method)
     x0 = state.x if static else jnp.where(free > 0, state.x + opts.dt * state.v, state.x)
     if static:
         # Actuators may load a body with no external force: measure the residual against

@@ -238,13 +238,11 @@ class Skeleton:
 
 
 def _skew(w):
-    return jnp.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-
-
-def _axis_angle(axis, theta):
-    """Rotation matrix of angle ``theta`` about the unit ``axis`` (Rodrigues)."""
-    k = _skew(axis)
-    return jnp.eye(3) + jnp.sin(theta) * k + (1.0 - jnp.cos(theta)) * (k @ k)
+    """Cross-product matrices ``[w]_x`` of vectors ``w`` ``(..., 3)``: shape ``(..., 3, 3)``."""
+    zero = jnp.zeros_like(w[..., 0])
+    return jnp.stack([jnp.stack([zero, -w[..., 2], w[..., 1]], -1),
+                      jnp.stack([w[..., 2], zero, -w[..., 0]], -1),
+                      jnp.stack([-w[..., 1], w[..., 0], zero], -1)], -2)
 
 
 def _quat_mul(a, b):
@@ -268,6 +266,24 @@ def _quat_matrix(q):
     return rot.quat_to_mat(q[:, None])[:, :, 0]
 
 
+class Pose(NamedTuple):
+    """The skeleton at coordinates ``z``: link transforms, bone positions and dof twists.
+
+    Attributes:
+        r: ``(L, 3, 3)`` link rotations; p: ``(L, 3)`` translations (rest ``X`` maps to
+            ``r[l] X + p[l]``).
+        x: ``(n_b, 3)`` bone vertex positions.
+        twists: ``(L, 6, n_dofs)`` the world twist ``(u, w)`` of each dof as it moves link
+            ``l`` (zero where the dof's joint is not ``l`` or an ancestor of it): a bone
+            vertex ``x`` of link ``l`` moves by ``u + w x x`` per unit of the dof.
+    """
+
+    r: Array
+    p: Array
+    x: Array
+    twists: Array
+
+
 @dataclass(frozen=True, eq=False)
 class Rig:
     """A :class:`Skeleton` bound to a mesh: bone vertices, rest positions, coordinate layout.
@@ -276,6 +292,9 @@ class Rig:
     top-down order (Free: ``t`` then the quaternion ``(w, x, y, z)``); the tangent
     (velocity) layout ``(n_dofs,)`` is the same with 6 entries for a Free joint
     (``dt``, then the world-frame rotation increment). Static: hashed by identity.
+
+    The kinematics are batched over links: the joint transforms of all links at once,
+    then one composition per depth of the tree (prefix products, top-down).
 
     Attributes:
         skeleton: the skeleton.
@@ -317,29 +336,48 @@ class Rig:
             bone.append(verts)
             vertex_link.append(np.full(len(verts), i))
             centres.append(_centre(link.joint, mesh, region))
+        n_links = len(links)
         n_coords = [_N_COORDS[type(link.joint)] for link in links]
         n_dofs = [_N_DOFS[type(link.joint)] for link in links]
         parent = np.array([-1 if link.parent is None else [x.name for x in links].index(link.parent)
                            for link in links])
-        dof_start = np.concatenate([[0], np.cumsum(n_dofs)])
+        coord_start = np.concatenate([[0], np.cumsum(n_coords)]).astype(np.int64)
+        dof_start = np.concatenate([[0], np.cumsum(n_dofs)]).astype(np.int64)
         # ancestor[l, j]: joint j moves link l (j is l or one of its ancestors).
-        ancestor = np.eye(len(links), dtype=bool)
-        for i in range(len(links)):
+        ancestor = np.eye(n_links, dtype=bool)
+        depth = np.zeros(n_links, np.int64)
+        for i in range(n_links):
             if parent[i] >= 0:
                 ancestor[i] |= ancestor[parent[i]]
+                depth[i] = depth[parent[i]] + 1
         vertex_link = np.concatenate(vertex_link)
-        dof_link = np.repeat(np.arange(len(links)), n_dofs)
+        dof_link = np.repeat(np.arange(n_links), n_dofs)
         lo = np.full(int(dof_start[-1]), -np.inf)
         hi = np.full(int(dof_start[-1]), np.inf)
+        rot_axis, slide_axis, origin = np.zeros((n_links, 3)), np.zeros((n_links, 3)), np.zeros((n_links, 3))
+        scalar = []  # links with one coordinate (Revolute, Prismatic)
         for i, link in enumerate(links):
-            limits = getattr(link.joint, "limits", None)
-            if limits is not None:
-                lo[dof_start[i]], hi[dof_start[i]] = limits
+            joint = link.joint
+            if isinstance(joint, Revolute):
+                rot_axis[i], origin[i] = joint.axis, joint.origin
+            elif isinstance(joint, Prismatic):
+                slide_axis[i] = joint.axis
+            if isinstance(joint, (Revolute, Prismatic)):
+                scalar.append(i)
+                if joint.limits is not None:
+                    lo[dof_start[i]], hi[dof_start[i]] = joint.limits
+        scalar = np.asarray(scalar, np.int64)
+        one_hot = np.zeros((len(vertex_link), n_links))
+        one_hot[np.arange(len(vertex_link)), vertex_link] = 1.0
         for name, value in dict(
                 bone=np.concatenate(bone).astype(np.int32), vertex_link=vertex_link,
                 rest=mesh.points[np.concatenate(bone)], centres=centres, parent=parent,
-                coord_start=np.concatenate([[0], np.cumsum(n_coords)]), dof_start=dof_start,
-                moves=ancestor[vertex_link][:, dof_link].astype(np.float64),
+                coord_start=coord_start, dof_start=dof_start,
+                moves=ancestor[:, dof_link].astype(np.float64), vertex_one_hot=one_hot,
+                levels=[np.flatnonzero(depth == d) for d in range(1, int(depth.max()) + 1)],
+                free_links=[i for i, link in enumerate(links) if isinstance(link.joint, Free)],
+                scalar_links=scalar, scalar_coords=coord_start[scalar], scalar_dofs=dof_start[scalar],
+                rot_axis=rot_axis, slide_axis=slide_axis, origin=origin,
                 lower=lo, upper=hi, n_vertices=mesh.n_vertices).items():
             object.__setattr__(self, name, value)
 
@@ -369,25 +407,15 @@ class Rig:
     def rest_coordinates(self) -> Array:
         """The coordinates ``(n_coords,)`` of the rest pose (angles and slides 0, identity)."""
         z = np.zeros(self.n_coords)
-        for i, link in enumerate(self.links):
-            if isinstance(link.joint, Free):
-                z[self.coord_start[i] + 3] = 1.0
+        for i in self.free_links:
+            z[self.coord_start[i] + 3] = 1.0
         return jnp.asarray(z)
 
-    def _joint(self, i, z):
-        """Joint ``i``'s local transform ``(R (3, 3), p (3,))``: ``J(X) = R X + p``."""
-        joint, c = self.links[i].joint, z[self.coord_start[i]:self.coord_start[i + 1]]
-        if isinstance(joint, Free):
-            r = _quat_matrix(c[3:] / jnp.linalg.norm(c[3:]))
-            centre = jnp.asarray(self.centres[i])
-            return r, centre + c[:3] - r @ centre
-        if isinstance(joint, Revolute):
-            r = _axis_angle(jnp.asarray(joint.axis), c[0])
-            origin = jnp.asarray(joint.origin)
-            return r, origin - r @ origin
-        if isinstance(joint, Prismatic):
-            return jnp.eye(3), c[0] * jnp.asarray(joint.axis)
-        return jnp.eye(3), jnp.zeros(3)
+    def _scalars(self, z: Array) -> Array:
+        """Every link's angle or slide ``(L,)`` (0 for Free and Fixed joints)."""
+        if len(self.scalar_links) == 0:
+            return jnp.zeros(len(self.links), z.dtype)
+        return jnp.zeros(len(self.links), z.dtype).at[self.scalar_links].set(z[self.scalar_coords])
 
     def transforms(self, z: Array) -> tuple[Array, Array]:
         """World transforms of the links by prefix products, top-down.
@@ -399,50 +427,82 @@ class Rig:
             ``(R, p)``: ``(L, 3, 3)`` rotations and ``(L, 3)`` translations; link ``l``
             maps rest positions ``X`` to ``R[l] X + p[l]``.
         """
-        rs, ps = [], []
-        for i in range(len(self.links)):
-            rj, pj = self._joint(i, z)
-            if self.parent[i] >= 0:
-                rp, pp = rs[self.parent[i]], ps[self.parent[i]]
-                rj, pj = rp @ rj, rp @ pj + pp
-            rs.append(rj)
-            ps.append(pj)
-        return jnp.stack(rs), jnp.stack(ps)
+        z = jnp.asarray(z, float)
+        theta = self._scalars(z)
+        k = _skew(jnp.asarray(self.rot_axis))
+        r = (jnp.eye(3) + jnp.sin(theta)[:, None, None] * k
+             + (1.0 - jnp.cos(theta))[:, None, None] * (k @ k))  # Rodrigues; identity off revolute joints
+        origin = jnp.asarray(self.origin)
+        p = origin - jnp.einsum("lij,lj->li", r, origin) + theta[:, None] * jnp.asarray(self.slide_axis)
+        for i in self.free_links:
+            c = z[self.coord_start[i]:self.coord_start[i + 1]]
+            ri = _quat_matrix(c[3:] / jnp.linalg.norm(c[3:]))
+            centre = jnp.asarray(self.centres[i])
+            r, p = r.at[i].set(ri), p.at[i].set(centre + c[:3] - ri @ centre)
+        for idx in self.levels:
+            par = self.parent[idx]
+            r_par, p_par = r[par], p[par]
+            p = p.at[idx].set(jnp.einsum("lij,lj->li", r_par, p[idx]) + p_par)
+            r = r.at[idx].set(r_par @ r[idx])
+        return r, p
 
     def positions(self, z: Array) -> Array:
         """Forward kinematics: bone vertex positions ``(n_b, 3)`` (in :attr:`bone` order)."""
         r, p = self.transforms(z)
+        return self._place(r, p)
+
+    def _place(self, r, p):
         link = jnp.asarray(self.vertex_link)
         return jnp.einsum("vij,vj->vi", r[link], jnp.asarray(self.rest)) + p[link]
+
+    def pose(self, z: Array) -> Pose:
+        """Transforms, bone positions and dof twists at ``z`` (see :class:`Pose`).
+
+        The twist of a revolute dof is ``(-w x o, w)`` with the world axis ``w = R_parent a``
+        through the world origin ``o`` of the joint; of a prismatic dof ``(R_parent a, 0)``;
+        of a Free joint's translation ``(e_i, 0)`` and rotation (about its world centre
+        ``c``) ``(-e_i x c, e_i)``. Only the prefix (parent) transforms are needed.
+        """
+        z = jnp.asarray(z, float)
+        r, p = self.transforms(z)
+        n_links, k = len(self.links), self.n_dofs
+        par = np.where(self.parent >= 0, self.parent, n_links)
+        r_par = jnp.concatenate([r, jnp.eye(3)[None]])[par]
+        p_par = jnp.concatenate([p, jnp.zeros((1, 3))])[par]
+        w = jnp.einsum("lij,lj->li", r_par, jnp.asarray(self.rot_axis))
+        u = (-jnp.cross(w, jnp.einsum("lij,lj->li", r_par, jnp.asarray(self.origin)) + p_par)
+             + jnp.einsum("lij,lj->li", r_par, jnp.asarray(self.slide_axis)))
+        twist = jnp.zeros((k, 6))
+        if len(self.scalar_links):
+            twist = twist.at[self.scalar_dofs].set(jnp.concatenate([u, w], axis=1)[self.scalar_links])
+        for i in self.free_links:
+            c = z[self.coord_start[i]:self.coord_start[i] + 3] + jnp.asarray(self.centres[i])
+            eye = jnp.eye(3)
+            block = jnp.concatenate([jnp.concatenate([eye, jnp.zeros((3, 3))], axis=1),
+                                     jnp.concatenate([-jnp.cross(eye, c), eye], axis=1)])
+            twist = twist.at[self.dof_start[i]:self.dof_start[i] + 6].set(block)
+        twists = jnp.asarray(self.moves)[:, None, :] * twist.T[None]
+        return Pose(r, p, self._place(r, p), twists)
 
     def jacobian(self, z: Array) -> Array:
         """``B = dx_bone/dz`` in tangent coordinates, shape ``(n_b, 3, n_dofs)``.
 
-        Column ``k`` is the world twist ``(w_k, u_k)`` of dof ``k`` applied to the vertices
-        it moves: ``B[v, :, k] = w_k x x_v + u_k``.
+        Column ``k`` is the world twist ``(u_k, w_k)`` of dof ``k`` applied to the vertices
+        it moves: ``B[v, :, k] = u_k + w_k x x_v``.
         """
-        r, p = self.transforms(z)
-        ws, us = [], []
-        for i, link in enumerate(self.links):
-            joint = link.joint
-            rp, pp = (r[self.parent[i]], p[self.parent[i]]) if self.parent[i] >= 0 else (jnp.eye(3), jnp.zeros(3))
-            if isinstance(joint, Free):
-                c = z[self.coord_start[i]:self.coord_start[i] + 3] + jnp.asarray(self.centres[i])
-                ws += [jnp.zeros(3)] * 3 + list(jnp.eye(3))
-                us += list(jnp.eye(3)) + [-jnp.cross(e, c) for e in jnp.eye(3)]
-            elif isinstance(joint, Revolute):
-                w = rp @ jnp.asarray(joint.axis)
-                ws.append(w)
-                us.append(-jnp.cross(w, rp @ jnp.asarray(joint.origin) + pp))
-            elif isinstance(joint, Prismatic):
-                ws.append(jnp.zeros(3))
-                us.append(rp @ jnp.asarray(joint.axis))
-        if not ws:
-            return jnp.zeros((len(self.bone), 3, 0))
-        w, u = jnp.stack(ws), jnp.stack(us)  # (k, 3)
-        x = self.positions(z)
-        cols = jnp.cross(w[None, :, :], x[:, None, :]) + u[None]  # (n_b, k, 3)
-        return jnp.swapaxes(cols, 1, 2) * jnp.asarray(self.moves)[:, None, :]
+        pose = self.pose(z)
+        t = pose.twists[jnp.asarray(self.vertex_link)]  # (n_b, 6, k)
+        return t[:, :3] - jnp.einsum("vij,vjk->vik", _skew(pose.x), t[:, 3:])
+
+    def reduce(self, pose: Pose, force: Array) -> Array:
+        """``B^T f``: the generalised force ``(n_dofs,)`` of bone-vertex forces ``f`` ``(n_b, 3)``.
+
+        Summed per link as a wrench (force, moment about the origin), then mapped by the
+        twists; no ``(n_b, 3, n_dofs)`` Jacobian is formed.
+        """
+        one_hot = jnp.asarray(self.vertex_one_hot)
+        wrench = jnp.concatenate([one_hot.T @ force, one_hot.T @ jnp.cross(pose.x, force)], axis=1)  # (L, 6)
+        return jnp.einsum("lak,la->k", pose.twists, wrench)
 
     def retract(self, z: Array, dz: Array) -> Array:
         """Move ``z`` by the tangent step ``dz`` ``(n_dofs,)`` and stay on the manifold.
@@ -450,16 +510,16 @@ class Rig:
         Angles and slides add (then are clamped to their limits); a Free joint's position
         adds and its rotation composes, ``q <- exp(dphi) q``, re-normalised.
         """
-        parts = []
-        for i, link in enumerate(self.links):
-            c, d = z[self.coord_start[i]:self.coord_start[i + 1]], dz[self.dof_start[i]:self.dof_start[i + 1]]
-            if isinstance(link.joint, Free):
-                q = _quat_mul(_quat_exp(d[3:]), c[3:])
-                parts += [c[:3] + d[:3], q / jnp.linalg.norm(q)]
-            elif isinstance(link.joint, (Revolute, Prismatic)):
-                k = self.dof_start[i]
-                parts.append(jnp.clip(c + d, self.lower[k], self.upper[k]))
-        return jnp.concatenate(parts) if parts else z
+        z = jnp.asarray(z, float)
+        if len(self.scalar_links):
+            value = jnp.clip(z[self.scalar_coords] + dz[self.scalar_dofs],
+                             self.lower[self.scalar_dofs], self.upper[self.scalar_dofs])
+            z = z.at[self.scalar_coords].set(value)
+        for i in self.free_links:
+            c, d = self.coord_start[i], dz[self.dof_start[i]:self.dof_start[i] + 6]
+            q = _quat_mul(_quat_exp(d[3:]), z[c + 3:c + 7])
+            z = z.at[c:c + 7].set(jnp.concatenate([z[c:c + 3] + d[:3], q / jnp.linalg.norm(q)]))
+        return z
 
     def coordinates(self, x_bone: Array) -> Array:
         """The coordinates ``(n_coords,)`` whose FK best fits bone positions ``(n_b, 3)``.
@@ -470,39 +530,43 @@ class Rig:
         each link relative to its parent's. Exact (to round-off) for positions produced by
         :meth:`positions`; revolute angles come back in ``(-pi, pi]``.
         """
-        link = jnp.asarray(self.vertex_link)
+        one_hot = jnp.asarray(self.vertex_one_hot)
         n_links = len(self.links)
-        count = jnp.zeros(n_links).at[link].add(1.0)[:, None]
+        count = self.vertex_one_hot.sum(axis=0)[:, None]
         rest = jnp.asarray(self.rest)
-        xm = jnp.zeros((n_links, 3)).at[link].add(x_bone) / count
-        rm = jnp.zeros((n_links, 3)).at[link].add(rest) / count
-        cov = jnp.einsum("vi,vj->vij", x_bone - xm[link], rest - rm[link])
-        h = jnp.zeros((n_links, 3, 3)).at[link].add(cov)
+        xm = one_hot.T @ x_bone / count
+        rm = jnp.asarray(self.vertex_one_hot.T @ self.rest / count)
+        link = jnp.asarray(self.vertex_link)
+        h = jnp.einsum("vl,vi,vj->lij", one_hot, x_bone - xm[link], rest - rm[link])
         r = jnp.moveaxis(rot.polar(jnp.moveaxis(h, 0, -1), iterations=3), -1, 0)
         p = xm - jnp.einsum("lij,lj->li", r, rm)
-        parts = []
-        for i, lk in enumerate(self.links):
-            joint = lk.joint
-            rp, pp = (r[self.parent[i]], p[self.parent[i]]) if self.parent[i] >= 0 else (jnp.eye(3), jnp.zeros(3))
-            r_rel, p_rel = rp.T @ r[i], rp.T @ (p[i] - pp)
-            if isinstance(joint, Free):
-                centre = jnp.asarray(self.centres[i])
-                parts += [p_rel + r_rel @ centre - centre, rot.mat_to_quat(r_rel[:, :, None])[:, 0]]
-            elif isinstance(joint, Revolute):
-                a = jnp.asarray(joint.axis)
-                axial = jnp.array([r_rel[2, 1] - r_rel[1, 2], r_rel[0, 2] - r_rel[2, 0], r_rel[1, 0] - r_rel[0, 1]])
-                parts.append(jnp.arctan2(0.5 * a @ axial, 0.5 * (jnp.trace(r_rel) - 1.0))[None])
-            elif isinstance(joint, Prismatic):
-                parts.append((jnp.asarray(joint.axis) @ p_rel)[None])
-        return jnp.concatenate(parts) if parts else jnp.zeros(0)
+        par = np.where(self.parent >= 0, self.parent, n_links)
+        r_par = jnp.concatenate([r, jnp.eye(3)[None]])[par]
+        p_par = jnp.concatenate([p, jnp.zeros((1, 3))])[par]
+        r_rel = jnp.einsum("lji,ljk->lik", r_par, r)
+        p_rel = jnp.einsum("lji,lj->li", r_par, p - p_par)
+        z = jnp.zeros(self.n_coords, x_bone.dtype)
+        if len(self.scalar_links):
+            axial = 0.5 * rot.vee_skew(jnp.moveaxis(r_rel, 0, -1)).T  # (L, 3): sin(theta) a
+            cos = 0.5 * (jnp.trace(r_rel, axis1=1, axis2=2) - 1.0)
+            angle = jnp.arctan2(jnp.sum(jnp.asarray(self.rot_axis) * axial, axis=1), cos)
+            slide = jnp.sum(jnp.asarray(self.slide_axis) * p_rel, axis=1)
+            is_rev = np.any(self.rot_axis != 0, axis=1)
+            value = jnp.where(is_rev, angle, slide)
+            z = z.at[self.scalar_coords].set(value[self.scalar_links])
+        for i in self.free_links:
+            centre = jnp.asarray(self.centres[i])
+            c = self.coord_start[i]
+            z = z.at[c:c + 3].set(p_rel[i] + r_rel[i] @ centre - centre)
+            z = z.at[c + 3:c + 7].set(rot.mat_to_quat(r_rel[i][:, :, None])[:, 0])
+        return z
 
     def joint_values(self, z: Array) -> Array:
         """Angle (rad) or slide (m) of every revolute and prismatic joint, ``(n_dofs,)``
         layout with Free rows set to 0."""
-        out = jnp.zeros(self.n_dofs)
-        for i, link in enumerate(self.links):
-            if isinstance(link.joint, (Revolute, Prismatic)):
-                out = out.at[self.dof_start[i]].set(z[self.coord_start[i]])
+        out = jnp.zeros(self.n_dofs, jnp.asarray(z).dtype)
+        if len(self.scalar_links):
+            out = out.at[self.scalar_dofs].set(z[self.scalar_coords])
         return out
 
 
@@ -521,80 +585,166 @@ def _centre(joint, mesh: TetMesh, region) -> np.ndarray | None:
     return (volume[:, None] * corners.mean(axis=1)).sum(axis=0) / volume.sum()
 
 
-class SchurFactor(NamedTuple):
-    """The PD matrix ``A`` condensed onto the bone vertices (see :func:`schur_factor`).
-
-    Attributes:
-        schur: ``(n_b, n_b)`` the Schur complement ``S0 = Q_rr - Q_rf Q_ff^-1 Q_fr``.
-        coupling: ``(n, n_b)`` ``W = A^-1 E_r S0`` (``E_r``: the bone vertices' unit vectors).
-    """
-
-    schur: Array
-    coupling: Array
-
-
-def schur_factor(precondition, bone: np.ndarray, n: int) -> SchurFactor:
-    """Condense the PD matrix onto the bone vertices.
+class SchurFactor(eqx.Module):
+    """The PD matrix ``A`` condensed onto the skeleton, once per rollout (:func:`schur_factor`).
 
     With ``A = [[Q_ff, Q_fr], [Q_rf, Q_rr]]`` (free and bone vertices; scalar ``n x n``),
-    the Schur complement ``S0 = Q_rr - Q_rf Q_ff^-1 Q_fr`` is the inverse of the bone block
-    ``C_rr`` of ``C = A^-1 E_r``. Both come from one solve with the prefactored ``A``
-    (``precondition``) for the ``n_b`` unit columns and a dense Cholesky inversion of size
-    ``n_b``; no separate factorisation of ``Q_ff`` is needed, as ``Q_ff^-1`` is applied
-    through ``A^-1`` in :func:`schur_direction`.
+    the Schur complement ``S0 = Q_rr - Q_rf Q_ff^-1 Q_fr`` and the coupling
+    ``Y = Q_ff^-1 Q_fr`` enter the reduced step only through their sums over links
+    (bones move rigidly), so only those moments are kept.
+
+    Attributes:
+        factor: the factorisation of ``A`` with the bone vertices decoupled (their rows
+            and columns reduced to the diagonal): solves with it apply ``Q_ff^-1``.
+        data_rf: ``(m,)`` the nonzero entries of ``A`` in bone rows and free columns
+            (``Q_rf``), at ``rf_rows`` (positions in the bone list) and ``rf_cols``
+            (vertices), ``(m,)`` ints.
+        moments: ``(4L, 4L)`` ``F^T S0 F`` with ``F = [E, E * X]`` ``(n_b, 4L)``: ``E`` the
+            bone vertices' link indicator, ``X`` their rest positions.
+        coupling: ``(n, 4L)`` ``Y F``.
+        solver, pattern: the linear solver and sparsity pattern (static).
+    """
+
+    factor: object
+    data_rf: Array
+    moments: Array
+    coupling: Array
+    rf_rows: Array
+    rf_cols: Array
+    solver: object = eqx.field(static=True)
+    pattern: object = eqx.field(static=True)
+    n_b: int = eqx.field(static=True)
+
+    def solve_ff(self, b: Array) -> Array:
+        """``Q_ff^-1 b_f`` on the free rows (``b`` ``(n, 3)`` with zero bone rows; bone rows stay 0)."""
+        return self.solver.solve(self.pattern, self.factor, b)
+
+    def q_rf(self, v: Array) -> Array:
+        """``Q_rf v_f`` ``(n_b, 3)`` for ``v`` ``(n, 3)``."""
+        return jax.ops.segment_sum(self.data_rf[:, None] * v[self.rf_cols], self.rf_rows, num_segments=self.n_b)
+
+
+def _features(rig: Rig) -> np.ndarray:
+    """``F = [E, E * X]`` ``(n_b, 4L)``: link indicator and rest positions per link."""
+    e, x = rig.vertex_one_hot, rig.rest
+    return np.concatenate([e, (e[:, :, None] * x[:, None, :]).reshape(len(x), -1)], axis=1)
+
+
+def schur_factor(solver, pattern, data: Array, rig: Rig) -> SchurFactor:
+    """Condense the PD matrix onto the skeleton (once per rollout; differentiable in ``data``).
+
+    One extra factorisation (``A`` with the bone vertices decoupled, i.e. ``Q_ff``), one
+    solve with ``n_b`` right-hand sides for ``Y = Q_ff^-1 Q_fr``, then
+    ``S0 = Q_rr - Q_rf Y`` and the link moments of ``S0`` and ``Y``.
 
     Arguments:
-        precondition: ``b (n, k) -> A^-1 b``.
-        bone: ``(n_b,)`` bone vertex indices.
-        n: number of vertices.
+        solver: the scene's :class:`~softbody.linsolve.LinearSolver`; pattern: its
+            :class:`~softbody.linsolve.SparsityPattern`.
+        data: ``(nnz,)`` the PD matrix values.
+        rig: the :class:`Rig`.
 
     Returns:
         A :class:`SchurFactor`.
     """
-    bone = jnp.asarray(bone)
-    unit = jnp.zeros((n, len(bone))).at[bone, jnp.arange(len(bone))].set(1.0)
-    columns = precondition(unit)
-    block = columns[bone]
-    cholesky = jnp.linalg.cholesky(0.5 * (block + block.T))
-    schur = jax.scipy.linalg.cho_solve((cholesky, True), jnp.eye(len(bone)))
-    schur = 0.5 * (schur + schur.T)
-    return SchurFactor(schur, columns @ schur)
+    n, bone = pattern.n, np.asarray(rig.bone)
+    is_bone = np.zeros(n, bool)
+    is_bone[bone] = True
+    rows, cols = is_bone[pattern.rows], is_bone[pattern.cols]
+    zero = jnp.zeros_like(data)
+    data_ff = jnp.where((~rows & ~cols) | (pattern.rows == pattern.cols), data, zero)
+    factor = solver.factorize(pattern, data_ff)
+    position = np.full(n, -1)
+    position[bone] = np.arange(len(bone))
+    rf = np.flatnonzero(rows & ~cols)
+    q_fr = jnp.zeros((n, len(bone))).at[pattern.cols[rf], position[pattern.rows[rf]]].add(data[rf])  # zero bone rows
+    y = solver.solve(pattern, factor, q_fr)
+    rr = np.flatnonzero(rows & cols)
+    q_rr = jnp.zeros((len(bone), len(bone))).at[position[pattern.rows[rr]], position[pattern.cols[rr]]].add(data[rr])
+    s0 = q_rr - q_fr.T @ y
+    s0 = 0.5 * (s0 + s0.T)
+    f = jnp.asarray(_features(rig))
+    return SchurFactor(factor, data[rf], f.T @ s0 @ f, y @ f, jnp.asarray(position[pattern.rows[rf]]),
+                       jnp.asarray(pattern.cols[rf]), solver, pattern, len(bone))
 
 
-def schur_direction(factor: SchurFactor, bone: np.ndarray, b: Array, g: Array, locked: Array,
-                    precondition) -> tuple[Array, Array]:
+def _reduced_matrix(moments: Array, pose: Pose) -> Array:
+    """``B^T (S0 x I3) B`` ``(k, k)`` from the link moments of ``S0`` at the pose.
+
+    Per link pair, ``H[l, m] = sum_{v in l, w in m} S0_vw Phi_v^T Phi_w`` with
+    ``Phi_v = [I, -[x_v]x]`` (so that ``B_v = Phi_v T_l``), which needs
+    ``sum S0``, ``sum S0 x_w``, ``sum S0 x_v`` and ``sum S0 x_v x_w^T``; with
+    ``x = R_l X + p_l`` these are the rest moments rotated and shifted.
+    """
+    n_links = pose.r.shape[0]
+    r, p = pose.r, pose.p
+    n0 = moments[:n_links, :n_links]
+    n1 = moments[:n_links, n_links:].reshape(n_links, n_links, 3)  # [l, m]: sum S0 X_w
+    n2 = moments[n_links:, n_links:].reshape(n_links, 3, n_links, 3).transpose(0, 2, 1, 3)
+    a = jnp.einsum("mij,lmj->lmi", r, n1) + n0[:, :, None] * p[None, :, :]  # sum S0 x_w
+    b = jnp.swapaxes(a, 0, 1)  # sum S0 x_v
+    rn1 = jnp.einsum("lij,mlj->lmi", r, n1)  # R_l sum S0 X_v
+    m2 = (jnp.einsum("lij,lmjk,mnk->lmin", r, n2, r)
+          + rn1[:, :, :, None] * p[None, :, None, :]
+          + p[:, None, :, None] * (a - n0[:, :, None] * p[None, :, :])[:, :, None, :]
+          + n0[:, :, None, None] * p[:, None, :, None] * p[None, :, None, :])
+    eye = jnp.eye(3)
+    top = jnp.concatenate([n0[:, :, None, None] * eye, -_skew(a)], axis=3)
+    bottom = jnp.concatenate([_skew(b), jnp.trace(m2, axis1=2, axis2=3)[:, :, None, None] * eye
+                              - jnp.swapaxes(m2, 2, 3)], axis=3)
+    h = jnp.concatenate([top, bottom], axis=2)  # (L, L, 6, 6)
+    return jnp.einsum("lak,lmab,mbj->kj", pose.twists, h, pose.twists)
+
+
+def _direction(factor: SchurFactor, rig: Rig, pose: Pose, g: Array, locked: Array) -> tuple[Array, Array]:
+    bone = jnp.asarray(rig.bone)
+    return _solve_reduced(factor, rig, pose, g.at[bone].set(0.0), rig.reduce(pose, g[bone]), locked)
+
+
+def _solve_reduced(factor: SchurFactor, rig: Rig, pose: Pose, g_f: Array, g_z: Array,
+                   locked: Array) -> tuple[Array, Array]:
+    """Solve the reduced PD system for the right-hand side ``(g_f, g_z)`` (``g_f`` ``(n, 3)``
+    with zero bone rows, ``g_z`` ``(n_dofs,)``); see :func:`schur_direction`."""
+    bone = jnp.asarray(rig.bone)
+    pose = pose._replace(twists=pose.twists * (1.0 - locked))
+    v = factor.solve_ff(g_f)  # Q_ff^-1 g_f, zero bone rows
+    rhs = g_z * (1.0 - locked) - rig.reduce(pose, factor.q_rf(v))
+    small = _reduced_matrix(factor.moments, pose) + jnp.diag(locked)
+    d_z = jnp.linalg.solve(small, rhs)
+    twist = jnp.einsum("lak,k->la", pose.twists, d_z)  # (L, 6): each link's (a, omega)
+    a, omega = twist[:, :3], twist[:, 3:]
+    # Bone rows move rigidly: a + omega x x_v = c + [omega]x R X_v with c = a + omega x p.
+    c = a + jnp.cross(omega, pose.p)
+    m = _skew(omega) @ pose.r  # (L, 3, 3)
+    k = jnp.concatenate([c, jnp.swapaxes(m, 1, 2).reshape(-1, 3)])  # (4L, 3)
+    link = jnp.asarray(rig.vertex_link)
+    d_bone = a[link] + jnp.cross(omega[link], pose.x)
+    return (v - factor.coupling @ k).at[bone].set(d_bone), d_z
+
+
+def schur_direction(factor: SchurFactor, rig: Rig, z: Array, g: Array, locked: Array) -> tuple[Array, Array]:
     """The reduced PD step: solve ``[[Q_ff, Q_fr B], [B^T Q_rf, B^T Q_rr B]] (d_f, d_z) = (g_f, B^T g_r)``.
 
     The quadratic model ``1/2 d^T A d - g . d`` is minimised over the displacements whose
-    bone rows are ``B d_z``. With ``u = A^-1 g``::
+    bone rows are ``B d_z``. Eliminating ``d_f = Q_ff^-1 (g_f - Q_fr B d_z)``::
 
-        (B^T S0 B) d_z = B^T S0 u_r,    d = u - W (u_r - B d_z),
+        (B^T S0 B) d_z = B^T (g_r - Q_rf Q_ff^-1 g_f),    d_f = Q_ff^-1 g_f - Y B d_z,
 
-    one solve with ``A``, products with the dense ``S0`` and ``W`` and a dense system of
-    size ``n_dofs`` (the bone rows of ``d`` come out as ``B d_z``). This is the Schur
-    complement on the ``z`` block written through ``A^-1``:
-    ``Q_ff^-1 = (A^-1)_ff - C_f S0 C_f^T``.
+    one sparse solve with ``Q_ff``, one sparse product with ``Q_rf``, and products with
+    the link moments of ``S0`` and ``Y`` (:class:`SchurFactor`): bones move rigidly, so
+    ``B d_z`` is one twist per link and ``B^T S0 B`` a sum of ``6 x 6`` blocks per link
+    pair. No dense ``n_b``-sized product is formed per iteration.
 
     Arguments:
         factor: from :func:`schur_factor`.
-        bone: ``(n_b,)`` bone vertex indices.
-        b: ``(n_b, 3, n_dofs)`` Jacobian.
+        rig: the :class:`Rig`; z: ``(n_coords,)`` its coordinates.
         g: ``(n, 3)`` gradient of the objective (all vertices).
         locked: ``(n_dofs,)`` 1 for dofs held fixed in this step (at an active limit), else 0.
-        precondition: ``r (n, 3) -> A^-1 r``.
 
     Returns:
         ``(d, d_z)``: ``(n, 3)`` displacement (bone rows ``B d_z``) and ``(n_dofs,)``; the
         step is ``x - d``, ``z - d_z``.
     """
-    n_b, _, k = b.shape
-    b = b * (1.0 - locked)
-    u = precondition(g)
-    u_r = u[jnp.asarray(bone)]
-    sb = (factor.schur @ b.reshape(n_b, 3 * k)).reshape(n_b, 3, k)
-    small = jnp.einsum("vik,vil->kl", b, sb) + jnp.diag(locked)
-    d_z = jnp.linalg.solve(small, jnp.einsum("vik,vi->k", sb, u_r))
-    return u - factor.coupling @ (u_r - jnp.einsum("vik,k->vi", b, d_z)), d_z
+    return _direction(factor, rig, rig.pose(z), g, locked)
 
 
 @dataclass(frozen=True, eq=False)
@@ -607,7 +757,8 @@ class SkeletonPD(IterationMethod):
     Updates stay on the manifold (:meth:`Rig.retract`); a joint at a limit whose gradient
     pushes it outward is held for that iteration. The step starts from ``z`` fitted to the
     inertial prediction ``x_n + h v_n`` of the bones (:meth:`Rig.coordinates`), so no state
-    beyond the positions is needed; :func:`schur_factor` is computed once per step.
+    beyond the positions is needed. The condensation (:func:`schur_factor`) depends on the
+    PD matrix only: it is made once per rollout (:meth:`prepare`).
 
     Attributes:
         rig: the :class:`Rig` (skeleton bound to the scene's mesh).
@@ -616,12 +767,17 @@ class SkeletonPD(IterationMethod):
     The PD matrix is prefactored with the true volume weight (``volume_weight = 1``), for
     which the PD model majorises the elastic energy.
 
-    Gradients: differentiate skeleton scenes with :class:`~softbody.gradients.Unrolled`.
-    The implicit adjoint assumes ``grad Phi = 0`` at every free vertex, which does not
-    hold on bone vertices (they carry the joints' constraint forces).
+    Gradients: differentiate skeleton scenes in reverse mode with
+    :class:`~softbody.gradients.Unrolled`, which differentiates the iterations as they ran
+    (tested against finite differences over a rollout). The implicit adjoint's
+    stationarity assumption (``grad Phi = 0`` at every free vertex) does not hold on bone
+    vertices, which carry the joints' constraint forces; under the default
+    :class:`~softbody.gradients.Implicit` the step is a ``while_loop``, which forward mode
+    differentiates and reverse mode refuses (JAX's while-loop error).
 
     Raises:
-        SkeletonError: (in ``run``) the rig was bound to a mesh of another size.
+        SkeletonError: (in ``run``) the rig was bound to a mesh of another size, or the
+            scene has obstacles (contact acts on free vertices of the contact solver only).
         equinox.EquinoxRuntimeError: (at run time) a bone vertex is fixed.
     """
 
@@ -634,66 +790,90 @@ class SkeletonPD(IterationMethod):
         if int(self.backtracks) != self.backtracks or self.backtracks < 0:
             raise SkeletonError(f"SkeletonPD.backtracks must be an integer >= 0, got {self.backtracks!r}")
 
+    def prepare(self, model, data, factor) -> SchurFactor | None:
+        """The :class:`SchurFactor` of the scene's PD matrix (``None`` for a mesh of another
+        size; :meth:`run` then reports the mismatch)."""
+        if model.n_vertices != self.rig.n_vertices:
+            return None
+        return schur_factor(model.linear_solver, model.pattern, data, self.rig)
+
     def _check(self, problem: StepProblem, x0: Array) -> Array:
         n = x0.shape[0]
         if n != self.rig.n_vertices:
             raise SkeletonError(f"the rig was bound to a mesh of {self.rig.n_vertices} vertices, the scene has {n}")
+        if problem.obstacles:
+            raise SkeletonError("SkeletonPD does not handle contact: the scene's obstacles would be ignored and "
+                                "the body would pass through them; simulate contact without a skeleton "
+                                "(ContactPD) or remove the obstacles")
+        if not isinstance(problem.prepared, SchurFactor):
+            raise SkeletonError("SkeletonPD needs its per-rollout condensation in problem.prepared; build the "
+                                "step problem with softbody.model.prepare and softbody.objective.solve_step")
         fixed = jnp.any(problem.free[jnp.asarray(self.rig.bone)] == 0)
         return eqx.error_if(x0, fixed, "softbody: some bone vertices are fixed; bones move with their joints "
                                        "(weld a bone to the world with a root Fixed() joint instead)")
 
     def run(self, problem, x0, q0, threshold, max_iter, unrolled=False):
-        rig, evaluate, precondition = self.rig, problem.evaluate, problem.precondition
+        """Solve one step; see :class:`~softbody.solvers.IterationMethod`.
+
+        ``unrolled=False``: a ``while_loop`` (forward mode only); otherwise a fixed-trip
+        loop that reverse mode differentiates as it ran.
+        """
         x0 = self._check(problem, x0)
+        return self._solve(problem, x0, q0, threshold, max_iter, unrolled)
+
+    def _solve(self, problem, x0, q0, threshold, max_iter, unrolled):
+        """The iterations (see the class docstring)."""
+        rig, evaluate = self.rig, problem.evaluate
+        factor = problem.prepared
         n = x0.shape[0]
         bone = jnp.asarray(rig.bone)
         is_bone = jnp.zeros((n, 1)).at[bone].set(1.0)
-        factor = schur_factor(precondition, rig.bone, n)
         lower, upper = jnp.asarray(rig.lower), jnp.asarray(rig.upper)
 
-        def assemble(x, z):
-            return x.at[bone].set(rig.positions(z))
-
-        def reduced(g, z):
-            """``B``, the dofs held at a limit this iteration, and the norm of ``(g_f, B^T g_r)``
+        def reduced(g, pose, z):
+            """The dofs held at a limit this iteration, and the norm of ``(g_f, B^T g_r)``
             over the dofs that may move."""
-            b = rig.jacobian(z)
-            g_z = jnp.einsum("vik,vi->k", b, g[bone])
+            g_z = rig.reduce(pose, g[bone])
             value = rig.joint_values(z)
             locked = (((value <= lower) & (g_z > 0)) | ((value >= upper) & (g_z < 0))).astype(g.dtype)
             gnorm = jnp.sqrt(jnp.sum((g * (1.0 - is_bone)) ** 2) + jnp.sum((g_z * (1.0 - locked)) ** 2))
-            return b, locked, gnorm
+            return locked, gnorm
 
         z0 = rig.coordinates(x0[bone])
-        x0 = assemble(x0, z0)
+        pose0 = rig.pose(z0)
+        x0 = x0.at[bone].set(pose0.x)
         phi0, g0, q0 = evaluate(x0, q0)
 
         def cond(c):
             return (c[7] > threshold) & (c[9] < max_iter)
 
         def body(c):
-            x, z, q, phi, g, b, locked, _, evals, k = c
-            d, d_z = schur_direction(factor, rig.bone, b, g, locked, precondition)
+            x, z, q, phi, g, pose, locked, _, evals, k = c
+            d, d_z = _direction(factor, rig, pose, g, locked)
             slope = jnp.sum(g * d)  # -dPhi/dalpha along (x - alpha d, z - alpha d_z)
 
             def trial(alpha):
                 z_t = rig.retract(z, -alpha * d_z)
-                x_t = assemble(x - alpha * d * (1.0 - is_bone), z_t)
+                pose_t = rig.pose(z_t)
+                x_t = (x - alpha * d).at[bone].set(pose_t.x)
                 phi_t, g_t, q_t = evaluate(x_t, q)
-                return x_t, z_t, q_t, phi_t, g_t
+                return x_t, z_t, q_t, phi_t, g_t, pose_t
 
             def rejected(t):
-                alpha, tries, (_, _, _, phi_t, _) = t
+                alpha, tries, (_, _, _, phi_t, _, _) = t
                 return (~(phi_t <= phi - 1e-4 * alpha * slope + 1e-14 * jnp.abs(phi))) & (tries < self.backtracks)
 
             def halve(t):
                 alpha, tries, _ = t
                 return alpha / 2, tries + 1, trial(alpha / 2)
 
-            _, tries, (x, z, q, phi, g) = iterate(rejected, halve, (jnp.asarray(1.0), jnp.asarray(0), trial(1.0)),
-                                                  self.backtracks, unrolled)
-            return (x, z, q, phi, g, *reduced(g, z), evals + 1 + tries, k + 1)
+            # The search runs no iterations after acceptance (they would halve the accepted step).
+            _, tries, (x, z, q, phi, g, pose) = iterate(
+                rejected, halve, (jnp.asarray(1.0), jnp.asarray(0), trial(1.0)), self.backtracks,
+                unrolled is not False)
+            return (x, z, q, phi, g, pose, *reduced(g, pose, z), evals + 1 + tries, k + 1)
 
-        init = (x0, z0, q0, phi0, g0, *reduced(g0, z0), jnp.asarray(1), jnp.asarray(0))
+        init = (x0, z0, q0, phi0, g0, pose0, *reduced(g0, pose0, z0), jnp.asarray(1), jnp.asarray(0))
         x, _, q, _, _, _, _, gnorm, evals, k = iterate(cond, body, init, max_iter, unrolled)
         return Solution(x, q, k, evals, gnorm)
+

@@ -43,6 +43,7 @@ class StepProblem(NamedTuple):
         dt: the time step (0 for static solves).
         time: the time at the start of the step, s.
         obstacles: ``((obstacle, obstacle_params), ...)`` of the scene.
+        prepared: the iteration method's per-rollout data (:meth:`IterationMethod.prepare`).
     """
 
     evaluate: Callable
@@ -56,6 +57,7 @@ class StepProblem(NamedTuple):
     dt: float
     time: Array
     obstacles: tuple = ()
+    prepared: object = None
 
 
 class Solution(NamedTuple):
@@ -75,6 +77,19 @@ class IterationMethod:
     """
 
     volume_weight: float = 1.0
+
+    def prepare(self, model, data: Array, factor) -> object:
+        """Per-rollout data of the method, made once per rollout by :func:`softbody.model.prepare`
+        (differentiable) and handed to :meth:`run` as ``problem.prepared``.
+
+        Arguments:
+            model: the compiled scene.
+            data: ``(nnz,)`` the PD matrix values; factor: their factorisation.
+
+        Returns:
+            A pytree, or ``None`` (the default: nothing to prepare).
+        """
+        return None
 
     def run(self, problem: StepProblem, x0: Array, q0: Array, threshold: Array, max_iter: int,
             unrolled: bool = False) -> Solution:
