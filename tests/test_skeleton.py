@@ -290,6 +290,7 @@ def test_fixed_bone_vertices_and_wrong_meshes_are_rejected(bar, arm):
         JointTorque(rig, ["a"])
 
 
+@pytest.mark.slow  # ~4 min of CPU: reverse mode through 4 x 321 unrolled iterations
 def test_joint_torque_gradient_matches_finite_differences_over_a_rollout(arm):
     """Reverse mode through a 4-step rollout of the soft arm driven by joint torques
     (Unrolled adjoint, float64, no contact) against Richardson-extrapolated central
