@@ -357,14 +357,11 @@ def test_muscle_gait_gradient_through_contact_matches_central_differences():
     n_steps = 4
     problem = sc.ControlProblem(model, params, loss, sc.ControlGrid(n_steps, 2))
     theta = jnp.asarray(np.random.default_rng(0).normal(size=(n_steps, 2)))
-    grad = jax.jit(jax.grad(problem.objective))(theta)
-    direction = jnp.asarray(np.random.default_rng(1).standard_normal(theta.shape))
-    f = jax.jit(problem.objective)
-    eps = 1e-4
-    fd = float(f(theta + eps * direction) - f(theta - eps * direction)) / (2 * eps)
-    ad = float(jnp.sum(grad * direction))
-    # Central differences: truncation O(eps^2) ~ 1e-8 relative on order-one logits; the
-    # steps converge to 1e-11 of their force scale, so round-off adds ~1e-11 / eps ~ 1e-7.
-    # Contact with friction is only piecewise smooth: the check also fails if eps crosses a
-    # stick-slip switch (it does not at this seed; measured agreement 4e-7 on this scene).
-    assert abs(fd) > 0 and abs(ad - fd) <= 1e-5 * abs(fd), (ad, fd)
+    r = check_grad(problem.objective, theta, eps=2e-4, verbose=False)["all"]
+    # Richardson-extrapolated central differences (eps and eps / 2): truncation O(eps^4) is
+    # negligible and the steps converge to 1e-11 of their force scale. Through friction the
+    # rollout is only piecewise smooth (stick and slip), and the agreement measured on this
+    # scene depends on the direction: 5e-6 and 4.4e-5 on two random ones. The bound is the
+    # one the contact tests use for the same implicit derivative; a derivative that drops
+    # the activations' effect (zero, or missing the contact impulses) misses it by far.
+    assert abs(r["fd"]) > 0 and abs(r["ad"] - r["fd"]) <= 1e-4 * abs(r["fd"]), r
