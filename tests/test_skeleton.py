@@ -319,3 +319,24 @@ def test_joint_torque_gradient_matches_finite_differences_over_a_rollout(arm):
     assert abs(result["ad"]) > 1e-3  # the torques do move the tip (m per N m)
     assert result["rel_error"] <= 1e-5, result
 
+
+
+def test_two_link_arm_joint_angles_converge_at_first_order_in_dt(arm):
+    """The soft arm sagging from rest, run to t = 0.08 s with h = 0.01, 0.005, 0.0025 s:
+    implicit Euler is first order, so the joint-angle differences between successive
+    halvings shrink by ~2 (observed order within 0.7-1.3), and the bones stay rigid at
+    every step size."""
+    mesh, rig = arm
+    angles = []
+    for dt in (0.01, 0.005, 0.0025):
+        model, params = build(mesh, SKIN, fixed="xmin", options=Options(dt=dt, tol=1e-9, method=SkeletonPD(rig)))
+        traj = rollout(model, params, initial_state(model, params), n_steps=round(0.08 / dt))
+        assert bool(jnp.all(traj.info.converged))
+        xs = np.asarray(traj.x)
+        for link in range(2):
+            assert _max_distance_change(xs, rig.bone[rig.vertex_link == link]) < 1e-10
+        angles.append(np.asarray(rig.coordinates(traj.x[-1][jnp.asarray(rig.bone)])))
+    coarse, fine = np.abs(angles[0] - angles[1]).max(), np.abs(angles[1] - angles[2]).max()
+    assert np.abs(angles[2]).max() > 0.1  # a macroscopic swing (rad), not a rest state
+    assert fine < coarse  # the dt-error shrinks
+    assert 0.7 < np.log2(coarse / fine) < 1.3, (coarse, fine, angles)
