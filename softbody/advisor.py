@@ -94,10 +94,17 @@ def advise(rows, tol: float) -> Advice:
     ok = [r for r in pd if r["rel_error"] <= tol]
     if not ok:
         best = min(pd, key=lambda r: r["rel_error"])
+        others = [r for r in rows if r["rel_error"] <= tol]
+        hint = ""
+        if others:
+            o = min(others, key=lambda r: r["wall_s"])
+            knobs = ", ".join(f"{k} = {o[k]:g}" for k in ("dt", "rtol") if k in o)
+            hint = (f"; of the other methods, {o['method']} ({knobs}) reaches {o['rel_error']:.3g} in "
+                    f"{o['wall_s'] * 1e3:.0f} ms")
         raise AdviceError(
             f"no measured PD set-up reaches a relative error of {tol:g}; the most accurate reaches "
             f"{best['rel_error']:.3g} (dt = {best['dt']:.4g} s, tol = {best['tol']:g}, {best['vertices']} "
-            "vertices): loosen --tol, or measure a finer front with `softbody bench pareto`")
+            f"vertices){hint}. Loosen --tol, or measure a finer front with `softbody bench pareto`")
     choice = min(ok, key=lambda r: r["wall_s"])
     faster = sorted((r for r in pd if r["wall_s"] < choice["wall_s"] and r["rel_error"] > tol),
                     key=lambda r: r["wall_s"])
