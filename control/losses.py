@@ -280,7 +280,20 @@ def _check_scale(scale) -> np.ndarray:
 
 
 @dataclass(frozen=True, eq=False, init=False)
-class Effort(Loss):
+class _ScaledControls(Loss):
+    """A loss of the controls divided by a per-channel ``scale`` (> 0)."""
+
+    scale: np.ndarray
+
+    def __init__(self, scale=1.0):
+        object.__setattr__(self, "scale", _check_scale(scale))
+
+    def _scaled(self, controls):
+        return _controls_2d(controls) / jnp.asarray(self.scale)
+
+
+@dataclass(frozen=True, eq=False, init=False)
+class Effort(_ScaledControls):
     """Actuation effort: ``mean over steps of sum over channels (a / scale)^2``.
 
     Averaged over steps so that its weight does not depend on the horizon.
@@ -293,18 +306,13 @@ class Effort(Loss):
         ControlError: a non-positive scale, or controls that are not ``(T, C)`` (when called).
     """
 
-    scale: np.ndarray
-
-    def __init__(self, scale=1.0):
-        object.__setattr__(self, "scale", _check_scale(scale))
-
     def __call__(self, traj, controls):
-        a = _controls_2d(controls) / jnp.asarray(self.scale)
+        a = self._scaled(controls)
         return jnp.mean(jnp.sum(a * a, axis=-1))
 
 
 @dataclass(frozen=True, eq=False, init=False)
-class Smoothness(Loss):
+class Smoothness(_ScaledControls):
     """Roughness of the controls: ``mean over steps of sum over channels (da / scale)^2``,
     ``da`` the difference of consecutive steps' activations (0 for a single step).
 
@@ -315,13 +323,8 @@ class Smoothness(Loss):
         ControlError: a non-positive scale, or controls that are not ``(T, C)`` (when called).
     """
 
-    scale: np.ndarray
-
-    def __init__(self, scale=1.0):
-        object.__setattr__(self, "scale", _check_scale(scale))
-
     def __call__(self, traj, controls):
-        a = _controls_2d(controls) / jnp.asarray(self.scale)
+        a = self._scaled(controls)
         if a.shape[0] < 2:
             return jnp.zeros((), a.dtype)
         d = a[1:] - a[:-1]
