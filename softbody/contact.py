@@ -1019,8 +1019,8 @@ class ContactPD(IterationMethod):
             jnp.minimum(clearance(problem.x_n, problem.time), clearance(x0, t_end)) <= self.margin
         )
 
-        def free_step():
-            sol = self.free_method.run(problem, x0, q0, threshold, max_iter)
+        def free_step():  # the free method sees no obstacles: it is contact-free by definition
+            sol = self.free_method.run(problem._replace(obstacles=()), x0, q0, threshold, max_iter)
 
             def redo():
                 again = contact()

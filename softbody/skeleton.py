@@ -48,6 +48,7 @@ import numpy as np
 
 from softbody import rotation as rot
 from softbody.meshing import TetMesh
+from softbody.contact import ContactPD, _contact_step, _nearest_obstacle, _norm
 from softbody.model import SceneError
 from softbody.solvers import IterationMethod, Solution, StepProblem, iterate
 
@@ -490,7 +491,9 @@ class Rig:
         Column ``k`` is the world twist ``(u_k, w_k)`` of dof ``k`` applied to the vertices
         it moves: ``B[v, :, k] = u_k + w_k x x_v``.
         """
-        pose = self.pose(z)
+        return self._jacobian(self.pose(z))
+
+    def _jacobian(self, pose: Pose) -> Array:
         t = pose.twists[jnp.asarray(self.vertex_link)]  # (n_b, 6, k)
         return t[:, :3] - jnp.einsum("vij,vjk->vik", _skew(pose.x), t[:, 3:])
 
@@ -777,7 +780,7 @@ class SkeletonPD(IterationMethod):
 
     Raises:
         SkeletonError: (in ``run``) the rig was bound to a mesh of another size, or the
-            scene has obstacles (contact acts on free vertices of the contact solver only).
+            scene has obstacles (use :class:`SkeletonContactPD`).
         equinox.EquinoxRuntimeError: (at run time) a bone vertex is fixed.
     """
 
@@ -802,9 +805,9 @@ class SkeletonPD(IterationMethod):
         if n != self.rig.n_vertices:
             raise SkeletonError(f"the rig was bound to a mesh of {self.rig.n_vertices} vertices, the scene has {n}")
         if problem.obstacles:
-            raise SkeletonError("SkeletonPD does not handle contact: the scene's obstacles would be ignored and "
-                                "the body would pass through them; simulate contact without a skeleton "
-                                "(ContactPD) or remove the obstacles")
+            raise SkeletonError("SkeletonPD does not handle contact (the body would pass through the scene's "
+                                "obstacles); use Options(method=SkeletonContactPD(rig)), which runs SkeletonPD "
+                                "on the steps that touch nothing")
         if not isinstance(problem.prepared, SchurFactor):
             raise SkeletonError("SkeletonPD needs its per-rollout condensation in problem.prepared; build the "
                                 "step problem with softbody.model.prepare and softbody.objective.solve_step")
@@ -877,3 +880,104 @@ class SkeletonPD(IterationMethod):
         x, _, q, _, _, _, _, gnorm, evals, k = iterate(cond, body, init, max_iter, unrolled)
         return Solution(x, q, k, evals, gnorm)
 
+
+
+@dataclass(frozen=True, eq=False)
+class SkeletonContactPD(ContactPD):
+    """Contact and dry friction for a body with a skeleton: the splitting iteration of
+    :class:`~softbody.contact.ContactPD` in the skeleton's reduced coordinates.
+
+    Each iteration evaluates the local step at ``x`` (bones placed by ``FK(z)``, ``z``
+    fitted to the iterate's bone positions by :meth:`Rig.coordinates`), then sweeps
+
+    * the soft vertices as :class:`~softbody.contact.ContactPD` does: ``y = x - P^{-1} g``,
+      followed by the per-vertex contact step (stick or slide, non-penetration);
+    * the skeleton with its block of the same splitting:
+      ``z <- retract(z, -(B^T P_b B)^{-1} B^T g_b)``, ``P_b`` the bone vertices' ``P``,
+      ``B`` the FK Jacobian; a joint at a limit pushed outward is held, as in
+      :class:`SkeletonPD`.
+
+    Convergence carries over from :class:`~softbody.contact.ScaledDiagonal`'s theorem:
+    with ``T = diag(I, B)`` the reduced matrices are ``T^T L T`` and ``T^T (M/h^2 + D) T``,
+    the latter block diagonal (``D`` is diagonal), and ``L <= 4 diag(L)`` gives
+    ``T^T L T <= 2 T^T D T``, so the frozen-projection iteration matrix again has its
+    eigenvalues in ``[-beta, beta]``, ``beta < 1`` (``B^T M_b B > 0`` as every bone has a
+    volume). The residual is ``|P (x_new - x)|`` over the soft vertices together with the
+    reduced force ``|B^T g_b|`` of the joints free to move: zero exactly at the step's
+    equilibrium with contact. Anderson acceleration mixes the vertex positions; the next
+    map re-fits ``z``, and every returned iterate has rigid bones.
+
+    Contact acts on the soft vertices: bones are meant to lie inside the skin. Steps where
+    nothing is near an obstacle run ``free_method``, :class:`SkeletonPD` on the same rig.
+
+    Attributes:
+        rig: the :class:`Rig` (skeleton bound to the scene's mesh).
+        free_method: ``None`` (default) for ``SkeletonPD(rig)``, or a :class:`SkeletonPD`
+            on the same rig.
+        (the other attributes: see :class:`~softbody.contact.ContactPD`.)
+
+    Raises:
+        SkeletonError: no rig, or a ``free_method`` that is not a :class:`SkeletonPD`
+            on ``rig``.
+    """
+
+    free_method: IterationMethod | None = None
+    rig: Rig | None = None
+
+    __eq__ = object.__eq__  # static and hashed by identity, like the rig
+    __hash__ = object.__hash__
+
+    def __post_init__(self):
+        if not isinstance(self.rig, Rig):
+            raise SkeletonError("SkeletonContactPD needs rig=Skeleton(...).bind(mesh), got "
+                                f"{type(self.rig).__name__}")
+        if self.free_method is None:
+            object.__setattr__(self, "free_method", SkeletonPD(self.rig))
+        if not (isinstance(self.free_method, SkeletonPD) and self.free_method.rig is self.rig):
+            raise SkeletonError("SkeletonContactPD.free_method must be a SkeletonPD on the same rig (or None)")
+        super().__post_init__()
+
+    def prepare(self, model, data, factor):
+        """The Schur condensation of :class:`SkeletonPD` (its free steps need it)."""
+        return self.free_method.prepare(model, data, factor)
+
+    def run(self, problem, x0, q0, threshold, max_iter, unrolled=False):
+        """Solve one step with contact; see :meth:`ContactPD.run <softbody.contact.ContactPD.run>`."""
+        if x0.shape[0] != self.rig.n_vertices:
+            raise SkeletonError(f"the rig was bound to a mesh of {self.rig.n_vertices} vertices, "
+                                f"the scene has {x0.shape[0]}")
+        return super().run(problem, x0, q0, threshold, max_iter, unrolled)
+
+    def _map(self, problem: StepProblem):
+        """The fixed-point map on vertex positions and the Anderson weights (see the class
+        docstring)."""
+        rig, h, free = self.rig, problem.dt, problem.free
+        bone = jnp.asarray(rig.bone)
+        soft = free * (1.0 - jnp.zeros_like(free).at[bone].set(1.0))
+        inertia = problem.mass / h**2 if h > 0 else jnp.zeros_like(problem.mass)
+        stiffness = jnp.maximum(problem.diagonal - inertia, 0.0)
+        p = jnp.where(free > 0, inertia + self.splitting.diagonal(stiffness), 1.0)
+        p_bone = p[bone, 0]
+        lower, upper = jnp.asarray(rig.lower), jnp.asarray(rig.upper)
+        t_end = problem.time + h
+
+        def fixed_point_map(x, q):
+            z = rig.coordinates(x[bone])
+            pose = rig.pose(z)
+            x = x.at[bone].set(pose.x)
+            _, g, q = problem.evaluate(x, q)
+            y = x - g / p
+            frame = _nearest_obstacle(problem.obstacles, y, t_end)
+            x_new = jnp.where(soft > 0, _contact_step(y, problem.x_n, problem.v_n, h, frame, soft), x)
+            jac = rig._jacobian(pose)  # (n_b, 3, k)
+            g_z = rig.reduce(pose, g[bone])
+            value = rig.joint_values(z)
+            held = ((value <= lower) & (g_z > 0)) | ((value >= upper) & (g_z < 0))
+            move = 1.0 - held.astype(g.dtype)
+            block = jnp.einsum("vik,v,vil->kl", jac, p_bone, jac) * move[:, None] * move[None, :]
+            d_z = jnp.linalg.solve(block + jnp.diag(1.0 - move), g_z * move)
+            x_new = x_new.at[bone].set(rig.positions(rig.retract(z, -d_z)))
+            residual = jnp.sqrt(jnp.sum((soft * p * (x_new - x)) ** 2) + jnp.sum((g_z * move) ** 2))
+            return x_new, q, residual
+
+        return fixed_point_map, jnp.broadcast_to(jnp.sqrt(p) * free, problem.x_n.shape).ravel()

@@ -38,18 +38,14 @@ from softbody.model import Options, build, initial_state, prepare
 from softbody.simulate import rollout, step
 from softbody.solvers import LocalGlobal, StepProblem
 
-G = 9.81
+from incline import G, acceleration, ramped_gravity, rot_y
+
 EDGE = 0.1  # cube edge, m (density 1000: mass 1 kg)
 MU_S, MU_K = 0.5, 0.4
 DT = 0.01
 #: scenes that touch from the first step never take the contact-free path: a cheap one
 #: (plain PD) compiles faster than the default L-BFGS
 TOUCHING = ContactPD(free_method=LocalGlobal())
-
-
-def rot_y(theta):
-    c, s = np.cos(theta), np.sin(theta)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
 
 
 # ----------------------------------------------------------------------------- geometry
@@ -249,10 +245,7 @@ def cube_scene():
     Stiffness-proportional damping (``beta``, which does not resist rigid sliding) lets the
     cube's rocking settle within the test's 0.4 s.
 
-    Gravity enters as external forces ramped up over 0.1 s (the cube is set down gently):
-    switched on at once, it sets the cube ringing, and the dynamic overshoot of the shear
-    traction makes the edges slip, which in the bistable band mu_k < tan(theta) < mu_s
-    can start a slide that kinetic friction cannot stop (physical stick-slip, not tested here).
+    Gravity enters as external forces ramped up over 0.1 s (see ``incline``).
     """
     mesh = grid_box((EDGE,) * 3, (4, 4, 4), origin=(-EDGE / 2, -EDGE / 2, 0.0))
     model, params = build(
@@ -265,10 +258,8 @@ def cube_scene():
     return mesh, model, params, mass
 
 
-def gravity(mass, n_steps, ramp=0.1):
-    """``(n_steps, n, 3)`` weights ramped linearly from 0 to full over ``ramp`` seconds."""
-    scale = np.clip(np.arange(1, n_steps + 1) * DT / ramp, 0.0, 1.0)
-    return scale[:, None, None] * mass[None] * np.array([0.0, 0.0, -G])
+def gravity(mass, n_steps):
+    return ramped_gravity(mass, n_steps, DT)
 
 
 def with_plane(params, **values):
@@ -290,12 +281,6 @@ def on_incline(cube_scene, tan_theta, mu_k, n_steps):
     traj = rollout(model, params, initial_state(model, params, x=x0), forces=gravity(mass, n_steps))
     along = (np.asarray(traj.x) - x0) @ r[:, 0]
     return along.mean(axis=1), along[:, mesh.regions["zmin"].vertices], traj
-
-
-def acceleration(s, dt, start):
-    """Twice the quadratic coefficient of a least-squares fit of s(t) over frames >= start."""
-    t = np.arange(len(s)) * dt
-    return 2 * np.polyfit(t[start:], s[start:], 2)[0]
 
 
 def test_cube_sticks_below_and_slides_above_the_static_threshold(cube_scene):

@@ -5,6 +5,7 @@ Small structured meshes in float64. The pendulum and the torqued hinge are rigid
 whose motion is known in closed form; the arm is two bones in a soft skin.
 """
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -18,8 +19,10 @@ from softbody.meshing import Region
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, SceneError, build, initial_state, prepare
 from softbody.simulate import rollout
-from softbody.skeleton import (Fixed, Free, Link, Prismatic, Revolute, Skeleton, SkeletonError, SkeletonPD,
-                               schur_direction, schur_factor)
+from softbody.skeleton import (Fixed, Free, Link, Prismatic, Revolute, Skeleton, SkeletonContactPD, SkeletonError,
+                               SkeletonPD, schur_direction, schur_factor)
+
+from incline import G, acceleration, ramped_gravity, rot_y
 
 SKIN = Material(E=1e4, nu=0.3, density=1000.0)  # Pa, -, kg/m^3: a soft silicone skin
 
@@ -283,6 +286,13 @@ def test_fixed_bone_vertices_and_wrong_meshes_are_rejected(bar, arm):
     model, params = build(bar, SKIN, options=Options(method=SkeletonPD(rig)), obstacles=[Plane(mu_s=0.5)])
     with pytest.raises(SkeletonError, match="does not handle contact"):
         rollout(model, params, initial_state(model, params), n_steps=1)
+    with pytest.raises(SkeletonError, match="needs rig="):
+        SkeletonContactPD()
+    with pytest.raises(SkeletonError, match="SkeletonPD on the same rig"):
+        SkeletonContactPD(rig=rig, free_method=SkeletonPD(arm[1]))
+    model, params = build(arm[0], SKIN, options=Options(method=SkeletonContactPD(rig=rig)), obstacles=[Plane()])
+    with pytest.raises(SkeletonError, match="bound to a mesh of 400 vertices"):
+        rollout(model, params, initial_state(model, params), n_steps=1)
     model, params = build(bar, SKIN, actuators=[JointTorque(arm[1], ["upper"])])
     with pytest.raises(SceneError, match="bound to a mesh of"):
         prepare(model, params)
@@ -340,3 +350,47 @@ def test_two_link_arm_joint_angles_converge_at_first_order_in_dt(arm):
     assert np.abs(angles[2]).max() > 0.1  # a macroscopic swing (rad), not a rest state
     assert fine < coarse  # the dt-error shrinks
     assert 0.7 < np.log2(coarse / fine) < 1.3, (coarse, fine, angles)
+
+
+def test_jointed_body_sticks_on_an_incline_below_the_friction_angle_and_slides_above_it(arm):
+    """The arm (free root, elbow hinge, soft skin) set down on a tilted friction plane.
+
+    Below the friction angle (``tan theta = 0.9 mu_s``) it must come to rest: once
+    settled, no contact vertex slips and the body does not creep. Above it
+    (``tan theta = 1.1 mu_s``) the whole body slides with ``a = g (sin theta - mu_k
+    cos theta)`` (a rigid-body result: the skin's internal forces sum to zero), without
+    penetrating the plane, and the bones stay rigid throughout.
+    """
+    mesh, _ = arm
+    rig = Skeleton([Link("upper", "bone:upper", None, Free()),
+                    Link("fore", "bone:fore", "upper", Revolute((0.0, 1.0, 0.0), (0.10, 0.02, 0.02)))]).bind(mesh)
+    dt, mu_s, mu_k = 0.01, 0.5, 0.4
+    model, params = build(mesh, Material(E=1e5, nu=0.3, density=1000.0, beta=0.01),
+                          options=Options(dt=dt, gravity=(0.0, 0.0, 0.0), tol=1e-8, max_iter=3000,
+                                          method=SkeletonContactPD(rig=rig)),
+                          obstacles=[Plane(mu_s=mu_s, mu_k=mu_k)])
+    mass = np.asarray(prepare(model, params).mass)
+
+    def on_incline(tan_theta, kinetic, n_steps):
+        r = rot_y(np.arctan(tan_theta))
+        x0 = mesh.points @ r.T
+        plane = {**params.obstacles[0], "normal": jnp.asarray(r[:, 2]), "mu_k": jnp.asarray(kinetic)}
+        p = eqx.tree_at(lambda q: q.obstacles, params, (plane,))
+        traj = rollout(model, p, initial_state(model, p, x=x0), forces=ramped_gravity(mass, n_steps, dt))
+        assert bool(jnp.all(traj.info.converged))
+        xs = np.asarray(traj.x)
+        assert (xs @ r[:, 2]).min() > -1e-12, "no vertex may end a step below the incline"
+        for link in range(2):
+            assert _max_distance_change(xs, rig.bone[rig.vertex_link == link]) < 1e-10
+        along = (xs - x0) @ r[:, 0]
+        return along.mean(axis=1), along[:, mesh.regions["zmin"].vertices]
+
+    com, bottom = on_incline(0.9 * mu_s, mu_s, 50)
+    assert np.abs(bottom[40:] - bottom[40]).max() < 1e-7, "contact vertices must not slip while sticking"
+    assert np.abs(com[40:] - com[40]).max() < 1e-7, "the body must not creep"
+    assert np.abs(bottom).max() < 1e-4
+
+    com, _ = on_incline(1.1 * mu_s, mu_k, 40)
+    theta = np.arctan(1.1 * mu_s)
+    expected = G * (np.sin(theta) - mu_k * np.cos(theta))
+    assert acceleration(com, dt, 15) == pytest.approx(expected, rel=0.01)
