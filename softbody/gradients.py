@@ -105,11 +105,9 @@ class Implicit(Adjoint):
         from softbody.model import State
         from softbody.objective import solve_step, step_objective
 
-        if model.obstacles or type(model.method).__name__ == "SkeletonPD":
-            # Contact adds impulses beyond the stationarity of Phi, and a skeleton leaves
-            # joint forces on bone vertices: the contact solver carries its own implicit
-            # derivative (active set held fixed); a skeleton scene needs Unrolled (reverse
-            # mode through this while-loop solve raises JAX's error rather than a wrong answer).
+        if model.obstacles:
+            # Contact adds impulses beyond the stationarity of Phi: the contact solver
+            # carries its own implicit derivative (active set held fixed).
             return solve_step(model, prep, state, activation, force, static=static)
 
         def forward(prep, x_n, v_n, q_n, t, activation, force):
@@ -134,15 +132,30 @@ class Implicit(Adjoint):
                 return evaluate(x, qs)[1]
 
             args = (prep, x_n, v_n, q_n, activation, force)
-            factor = jax.lax.stop_gradient(prep.factor)
-            solver, pattern = model.linear_solver, model.pattern
-
-            # Linearise once: the loop then applies only the tangent map (the rotations'
-            # implicit derivative at the solution), not the primal residual every time.
-            _, hvp = jax.linearize(lambda x: residual(x, *args), xs)
-
             tol = self.tol if self.tol is not None else min(max(model.options.tol, 1e-10), 1e-6)
-            lam = _pcg(hvp, lambda r: solver.solve(pattern, factor, r), xbar * free, tol, self.max_iter)
+            chart = model.method.implicit_chart(jax.lax.stop_gradient(prep.method), xs, free)
+            if chart is None:
+                factor = jax.lax.stop_gradient(prep.factor)
+                solver, pattern = model.linear_solver, model.pattern
+                # Linearise once: the loop then applies only the tangent map (the rotations'
+                # implicit derivative at the solution), not the primal residual every time.
+                _, hvp = jax.linearize(lambda x: residual(x, *args), xs)
+                lam = _pcg(hvp, lambda r: solver.solve(pattern, factor, r), xbar * free, tol, self.max_iter)
+            else:
+                # Stationary in the chart's coordinates d (x = embed(d)): the reduced
+                # gradient J^T g, J = d embed/d d, vanishes; its Jacobian is the Hessian of
+                # Phi(embed(d)), symmetric. The cotangent maps to J^T xbar and back by J.
+                embed, precondition, size = chart
+                zero = jnp.zeros(size, xs.dtype)
+
+                def reduced(d):
+                    x, pull = jax.vjp(embed, d)
+                    return pull(residual(x, *args))[0]
+
+                _, hvp = jax.linearize(reduced, zero)
+                _, push = jax.linearize(embed, zero)
+                dbar = jax.vjp(embed, zero)[1](xbar)[0]
+                lam = push(_pcg(hvp, precondition, dbar, tol, self.max_iter))
             _, vjp = jax.vjp(lambda *a: residual(xs, *a), *args)
             ct_prep, ct_xn, ct_vn, ct_qn, ct_a, ct_f = vjp(-lam)
             ct_xn = ct_xn + xbar * (1.0 - free)  # fixed vertices: x* = x_n there

@@ -31,7 +31,9 @@ direction solves the PD matrix ``A`` restricted to the skeleton's motions::
     [[Q_ff,     Q_fr B  ], [d_f]   [g_f    ]
      [B^T Q_rf, B^T Q_rr B]] [d_z] = [B^T g_r]
 
-by a Schur complement on the bone block (see :func:`schur_factor`). Joint torques are
+by a Schur complement on the bone block (see :func:`schur_factor`). With obstacles,
+:class:`SkeletonContactPD` runs the contact solver's splitting iteration with the skeleton
+swept in its reduced coordinates (contact and dry friction act on the soft skin). Joint torques are
 the vertex terms of :mod:`softbody.actuators.joints`: their gradient on the bone
 vertices, mapped by ``B^T``, is exactly minus the torque in the joint's row.
 """
@@ -770,13 +772,12 @@ class SkeletonPD(IterationMethod):
     The PD matrix is prefactored with the true volume weight (``volume_weight = 1``), for
     which the PD model majorises the elastic energy.
 
-    Gradients: differentiate skeleton scenes in reverse mode with
-    :class:`~softbody.gradients.Unrolled`, which differentiates the iterations as they ran
-    (tested against finite differences over a rollout). The implicit adjoint's
-    stationarity assumption (``grad Phi = 0`` at every free vertex) does not hold on bone
-    vertices, which carry the joints' constraint forces; under the default
-    :class:`~softbody.gradients.Implicit` the step is a ``while_loop``, which forward mode
-    differentiates and reverse mode refuses (JAX's while-loop error).
+    Gradients: both modes. :class:`~softbody.gradients.Implicit` (the default) uses the
+    reduced coordinates as its chart (:meth:`implicit_chart`): the step's solution is
+    stationary in ``(x_free, z)``, not in the bone vertices (they carry the joints'
+    constraint forces), and the adjoint system is preconditioned with the same Schur
+    condensation as the forward step. :class:`~softbody.gradients.Unrolled`
+    differentiates the iterations as they ran.
 
     Raises:
         SkeletonError: (in ``run``) the rig was bound to a mesh of another size, or the
@@ -799,6 +800,34 @@ class SkeletonPD(IterationMethod):
         if model.n_vertices != self.rig.n_vertices:
             return None
         return schur_factor(model.linear_solver, model.pattern, data, self.rig)
+
+    def implicit_chart(self, prepared, x, free):
+        """The reduced coordinates ``d = (d_f (n, 3) on the soft free vertices, d_z (n_dofs,))``
+        about the solution ``x``: ``embed(d)`` moves the soft vertices by ``d_f`` and the
+        bones to ``FK(retract(z, d_z))``; joints at a limit are held (their ``d_z`` rows
+        are masked out). The preconditioner solves the reduced PD system (:func:`schur_direction`).
+        See :meth:`IterationMethod.implicit_chart <softbody.solvers.IterationMethod.implicit_chart>`."""
+        rig, n, k = self.rig, x.shape[0], self.rig.n_dofs
+        bone = jnp.asarray(rig.bone)
+        soft = free * (1.0 - jnp.zeros_like(free).at[bone].set(1.0))
+        z = rig.coordinates(x[bone])
+        pose = rig.pose(z)
+        value = rig.joint_values(z)
+        held = ((value <= jnp.asarray(rig.lower)) | (value >= jnp.asarray(rig.upper))).astype(x.dtype)
+
+        def split(d):
+            return d[:3 * n].reshape(n, 3) * soft, d[3 * n:] * (1.0 - held)
+
+        def embed(d):
+            d_f, d_z = split(d)
+            return (x + d_f).at[bone].set(rig.positions(rig.retract(z, d_z)))
+
+        def solve(r):
+            r_f, r_z = split(r)
+            d, d_z = _solve_reduced(prepared, rig, pose, r_f, r_z, held)
+            return jnp.concatenate([(d * soft).ravel(), d_z * (1.0 - held)])
+
+        return embed, solve, 3 * n + k
 
     def _check(self, problem: StepProblem, x0: Array) -> Array:
         n = x0.shape[0]

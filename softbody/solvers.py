@@ -91,6 +91,23 @@ class IterationMethod:
         """
         return None
 
+    def implicit_chart(self, prepared, x: Array, free: Array):
+        """Coordinates in which the step's solution ``x`` is a stationary point of ``Phi``,
+        for :class:`softbody.gradients.Implicit`.
+
+        Arguments:
+            prepared: this method's per-rollout data (:meth:`prepare`).
+            x: ``(n, 3)`` the step's solution; free: ``(n, 1)`` the free-vertex mask.
+
+        Returns:
+            ``None`` (the default): the free vertices' positions themselves. Otherwise
+            ``(embed, solve, size)``: ``embed(d)`` maps ``(size,)`` chart coordinates to
+            positions ``(n, 3)``, with ``embed(0) = x``; ``solve(r)`` applies a symmetric
+            positive definite approximation of the inverse Hessian in the chart (the
+            adjoint's preconditioner).
+        """
+        return None
+
     def run(self, problem: StepProblem, x0: Array, q0: Array, threshold: Array, max_iter: int,
             unrolled: bool = False) -> Solution:
         """Iterate from ``(x0, q0)`` until ``|g| <= threshold`` or ``max_iter`` iterations.

@@ -331,6 +331,39 @@ def test_joint_torque_gradient_matches_finite_differences_over_a_rollout(arm):
 
 
 
+def test_implicit_gradient_of_torques_servos_and_material_matches_finite_differences(arm):
+    """The default (Implicit) adjoint in the skeleton's reduced coordinates, over 3 steps of
+    the soft arm with a torque on the shoulder and a servo on the elbow: the gradient of the
+    tip height with respect to the torques, the servo targets, the servo gain and Young's
+    modulus, each kind along its own random direction, against Richardson-extrapolated
+    central differences (float64). The forward tolerance is 1e-12: at 1e-10 the
+    differences along the gain and the modulus, which move the tip least, carried the
+    solver's stopping noise (1e-4 relative at a step of 1e-4; the gradient itself agreed
+    to 4e-7 at 1e-12)."""
+    mesh, rig = arm
+    servo = JointServo(rig, ["fore"], stiffness=0.05)
+    model, params = build(mesh, SKIN, fixed="xmin", actuators=[JointTorque(rig, ["upper"]), servo],
+                          options=Options(dt=0.01, tol=1e-12, max_iter=300, method=SkeletonPD(rig)))
+    state0 = initial_state(model, params)
+    tip = jnp.asarray(np.flatnonzero(mesh.points[:, 0] > 0.2 - 1e-9))
+    theta = {"torque": jnp.full((3, 1), 2e-3), "target": jnp.full((3, 1), -0.05),
+             "log_gain": jnp.log(jnp.array([0.05])), "log_E": jnp.log(params.E)}
+
+    def loss(th):
+        p = eqx.tree_at(lambda q: (q.E, q.actuators[1].stiffness), params,
+                        (jnp.exp(th["log_E"]), jnp.exp(th["log_gain"])))
+        controls = jnp.concatenate([th["torque"], th["target"]], axis=1)
+        return jnp.mean(rollout(model, p, state0, controls=controls).x[-1][tip, 2]) * 1e3  # mm
+
+    traj = rollout(model, params, state0, controls=jnp.concatenate([theta["torque"], theta["target"]], axis=1))
+    assert bool(jnp.all(traj.info.converged))
+    kinds = {k: {j: float(j == k) for j in theta} for k in theta}
+    results = check_grad(loss, theta, directions=kinds, eps=1e-3, verbose=False)
+    for kind, r in results.items():
+        assert abs(r["ad"]) > 1e-4, (kind, r)  # each kind moves the tip
+        assert r["rel_error"] <= 1e-5, (kind, r)
+
+
 def test_two_link_arm_joint_angles_converge_at_first_order_in_dt(arm):
     """The soft arm sagging from rest, run to t = 0.08 s with h = 0.01, 0.005, 0.0025 s:
     implicit Euler is first order, so the joint-angle differences between successive
