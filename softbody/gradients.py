@@ -102,6 +102,8 @@ class Implicit(Adjoint):
     segment_checkpoints: bool = False
 
     def solve(self, model, prep, state, activation, force, *, static):
+        from softbody import rotation as rot
+        from softbody.elastic import deformation_gradient
         from softbody.model import State
         from softbody.objective import solve_step, step_objective
 
@@ -120,12 +122,19 @@ class Implicit(Adjoint):
 
         def solve_fwd(prep, x_n, v_n, q_n, t, activation, force):
             sol, info = forward(prep, x_n, v_n, q_n, t, activation, force)
-            return (sol, info), (prep, x_n, v_n, q_n, t, activation, force, sol.x, sol.q)
+            # Rotations are the largest per-step arrays (4 per tet): keep the step-start
+            # ones only where stiffness damping reads them, and recompute the solution's
+            # in the backward pass (the maximising rotation is unique on non-inverted tets).
+            q_keep = q_n if (model.stiffness_damping and not static) else None
+            return (sol, info), (prep, x_n, v_n, q_keep, t, activation, force, sol.x)
 
         def solve_bwd(res, cts):
-            prep, x_n, v_n, q_n, t, activation, force, xs, qs = res
+            prep, x_n, v_n, q_n, t, activation, force, xs = res
             xbar = cts[0].x
             free = jnp.asarray(model.free_mask)
+            qs = rot.cold_start(deformation_gradient(model, prep.dminv, jnp.where(free > 0, xs, x_n)))
+            if q_n is None:
+                q_n = qs  # unread: the objective reads q_n only with stiffness damping
 
             def residual(x, prep, x_n, v_n, q_n, activation, force):
                 evaluate, _ = step_objective(model, prep, x_n, v_n, q_n, activation, force, static=static)
