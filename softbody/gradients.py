@@ -15,7 +15,12 @@ Two modes, both exact for what they differentiate (set ``Options(adjoint=...)``)
   per step is one state. The result is the derivative of the *exact* step solution: the
   forward tolerance must be tight for it to match finite differences of the computed
   trajectory (``tol`` <= 1e-8 gives ~1e-6 agreement in the tests; at DiffPD's 1e-4
-  the forward error, not the adjoint, dominates).
+  the forward error, not the adjoint, dominates). Where the solution is stationary only
+  in other coordinates (a skeleton's bones carry joint forces), the iteration method
+  supplies a chart ``x = embed(d)`` (:meth:`~softbody.solvers.IterationMethod.implicit_chart`)
+  and the same argument runs in ``d`` with the Hessian of ``Phi(embed(d))``. Per step the
+  backward pass keeps the step's inputs and solution, not its rotations (the solution's
+  are recomputed from positions). Contact scenes use the contact solver's own derivative.
 * :class:`Unrolled`: reverse mode through the iterations as they ran (a fixed-trip
   ``scan`` that skips finished iterations), each step rematerialised (``jax.checkpoint``),
   and the time loop split into segments of ~sqrt(n_steps) steps that are themselves
