@@ -939,6 +939,12 @@ class SkeletonContactPD(ContactPD):
     Contact acts on the soft vertices: bones are meant to lie inside the skin. Steps where
     nothing is near an obstacle run ``free_method``, :class:`SkeletonPD` on the same rig.
 
+    Gradients: not yet. Differentiating a rollout with this method fails while lowering
+    (``TypeError: No constant handler for type: ... DynamicJaxprTracer``): a value traced
+    inside the rollout leaks into the contact solver's fixed-point map as a constant
+    (making the SchurFactor's index arrays static did not cure it). Forward simulation
+    is tested.
+
     Attributes:
         rig: the :class:`Rig` (skeleton bound to the scene's mesh).
         free_method: ``None`` (default) for ``SkeletonPD(rig)``, or a :class:`SkeletonPD`
