@@ -982,11 +982,7 @@ class ContactPD(IterationMethod):
         weights ``sqrt(P)`` ``(n * 3,)`` (zero on fixed vertices)."""
         h = problem.dt
         free = problem.free
-        inertia = problem.mass / h**2 if h > 0 else jnp.zeros_like(problem.mass)
-        stiffness = jnp.maximum(problem.diagonal - inertia, 0.0)
-        p = jnp.where(
-            free > 0, inertia + self.splitting.diagonal(stiffness), 1.0
-        )  # fixed vertices never move
+        p = self._sweep_diagonal(problem)
         t_end = problem.time + h
 
         def fixed_point_map(x, q):
@@ -999,6 +995,14 @@ class ContactPD(IterationMethod):
             return x_new, q, _norm((p * (x_new - x)).ravel())  # = |grad Phi(x) - r|
 
         return fixed_point_map, jnp.broadcast_to(jnp.sqrt(p) * free, problem.x_n.shape).ravel()
+
+    def _sweep_diagonal(self, problem: StepProblem):
+        """``P = M/h^2 + D`` ``(n, 1)`` of the splitting sweep (1 on fixed vertices, which never
+        move)."""
+        h = problem.dt
+        inertia = problem.mass / h**2 if h > 0 else jnp.zeros_like(problem.mass)
+        stiffness = jnp.maximum(problem.diagonal - inertia, 0.0)
+        return jnp.where(problem.free > 0, inertia + self.splitting.diagonal(stiffness), 1.0)
 
     def _solve(
         self, problem: StepProblem, fixed_point_map, weight, x0, q0, threshold, max_iter: int

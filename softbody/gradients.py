@@ -168,7 +168,7 @@ class Implicit(Adjoint):
 
                 _, hvp = jax.linearize(reduced, zero)
                 _, push = jax.linearize(embed, zero)
-                dbar = jax.vjp(embed, zero)[1](xbar)[0]
+                (dbar,) = jax.linear_transpose(push, zero)(xbar)
                 lam = push(_pcg(hvp, precondition, dbar, tol, self.max_iter))
             _, vjp = jax.vjp(lambda *a: residual(xs, *a), *args)
             ct_prep, ct_xn, ct_vn, ct_qn, ct_a, ct_f = vjp(-lam)

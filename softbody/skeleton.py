@@ -302,6 +302,7 @@ class Rig:
     Attributes:
         skeleton: the skeleton.
         bone: ``(n_b,)`` mesh indices of the bone vertices, grouped by link.
+        is_bone: ``(n, 1)`` 1.0 on bone vertices, 0.0 elsewhere.
         vertex_link: ``(n_b,)`` link index of each bone vertex.
         rest: ``(n_b, 3)`` rest positions of the bone vertices.
         n_vertices: vertices of the mesh.
@@ -381,7 +382,8 @@ class Rig:
                 free_links=[i for i, link in enumerate(links) if isinstance(link.joint, Free)],
                 scalar_links=scalar, scalar_coords=coord_start[scalar], scalar_dofs=dof_start[scalar],
                 rot_axis=rot_axis, slide_axis=slide_axis, origin=origin,
-                lower=lo, upper=hi, n_vertices=mesh.n_vertices).items():
+                lower=lo, upper=hi, n_vertices=mesh.n_vertices,
+                is_bone=np.isin(np.arange(mesh.n_vertices), np.concatenate(bone))[:, None].astype(float)).items():
             object.__setattr__(self, name, value)
 
     @property
@@ -652,8 +654,7 @@ def schur_factor(solver, pattern, data: Array, rig: Rig) -> SchurFactor:
         A :class:`SchurFactor`.
     """
     n, bone = pattern.n, np.asarray(rig.bone)
-    is_bone = np.zeros(n, bool)
-    is_bone[bone] = True
+    is_bone = rig.is_bone[:, 0] > 0
     rows, cols = is_bone[pattern.rows], is_bone[pattern.cols]
     zero = jnp.zeros_like(data)
     data_ff = jnp.where((~rows & ~cols) | (pattern.rows == pattern.cols), data, zero)
@@ -698,6 +699,19 @@ def _reduced_matrix(moments: Array, pose: Pose) -> Array:
                               - jnp.swapaxes(m2, 2, 3)], axis=3)
     h = jnp.concatenate([top, bottom], axis=2)  # (L, L, 6, 6)
     return jnp.einsum("lak,lmab,mbj->kj", pose.twists, h, pose.twists)
+
+
+def _held(rig: Rig, z: Array, g_z: Array) -> Array:
+    """``(n_dofs,)`` 1.0 for the joints at a limit whose reduced gradient ``g_z`` pushes them
+    outward (held this iteration), else 0.0."""
+    value = rig.joint_values(z)
+    lower, upper = jnp.asarray(rig.lower), jnp.asarray(rig.upper)
+    return (((value <= lower) & (g_z > 0)) | ((value >= upper) & (g_z < 0))).astype(g_z.dtype)
+
+
+def _check_size(rig: Rig, n: int) -> None:
+    if n != rig.n_vertices:
+        raise SkeletonError(f"the rig was bound to a mesh of {rig.n_vertices} vertices, the scene has {n}")
 
 
 def _direction(factor: SchurFactor, rig: Rig, pose: Pose, g: Array, locked: Array) -> tuple[Array, Array]:
@@ -809,7 +823,7 @@ class SkeletonPD(IterationMethod):
         See :meth:`IterationMethod.implicit_chart <softbody.solvers.IterationMethod.implicit_chart>`."""
         rig, n, k = self.rig, x.shape[0], self.rig.n_dofs
         bone = jnp.asarray(rig.bone)
-        soft = free * (1.0 - jnp.zeros_like(free).at[bone].set(1.0))
+        soft = free * (1.0 - rig.is_bone)
         z = rig.coordinates(x[bone])
         pose = rig.pose(z)
         value = rig.joint_values(z)
@@ -830,9 +844,7 @@ class SkeletonPD(IterationMethod):
         return embed, solve, 3 * n + k
 
     def _check(self, problem: StepProblem, x0: Array) -> Array:
-        n = x0.shape[0]
-        if n != self.rig.n_vertices:
-            raise SkeletonError(f"the rig was bound to a mesh of {self.rig.n_vertices} vertices, the scene has {n}")
+        _check_size(self.rig, x0.shape[0])
         if problem.obstacles:
             raise SkeletonError("SkeletonPD does not handle contact (the body would pass through the scene's "
                                 "obstacles); use Options(method=SkeletonContactPD(rig)), which runs SkeletonPD "
@@ -857,18 +869,14 @@ class SkeletonPD(IterationMethod):
         """The iterations (see the class docstring)."""
         rig, evaluate = self.rig, problem.evaluate
         factor = problem.prepared
-        n = x0.shape[0]
         bone = jnp.asarray(rig.bone)
-        is_bone = jnp.zeros((n, 1)).at[bone].set(1.0)
-        lower, upper = jnp.asarray(rig.lower), jnp.asarray(rig.upper)
 
         def reduced(g, pose, z):
             """The dofs held at a limit this iteration, and the norm of ``(g_f, B^T g_r)``
             over the dofs that may move."""
             g_z = rig.reduce(pose, g[bone])
-            value = rig.joint_values(z)
-            locked = (((value <= lower) & (g_z > 0)) | ((value >= upper) & (g_z < 0))).astype(g.dtype)
-            gnorm = jnp.sqrt(jnp.sum((g * (1.0 - is_bone)) ** 2) + jnp.sum((g_z * (1.0 - locked)) ** 2))
+            locked = _held(rig, z, g_z)
+            gnorm = jnp.sqrt(jnp.sum((g * (1.0 - rig.is_bone)) ** 2) + jnp.sum((g_z * (1.0 - locked)) ** 2))
             return locked, gnorm
 
         z0 = rig.coordinates(x0[bone])
@@ -978,9 +986,7 @@ class SkeletonContactPD(ContactPD):
 
     def run(self, problem, x0, q0, threshold, max_iter, unrolled=False):
         """Solve one step with contact; see :meth:`ContactPD.run <softbody.contact.ContactPD.run>`."""
-        if x0.shape[0] != self.rig.n_vertices:
-            raise SkeletonError(f"the rig was bound to a mesh of {self.rig.n_vertices} vertices, "
-                                f"the scene has {x0.shape[0]}")
+        _check_size(self.rig, x0.shape[0])
         return super().run(problem, x0, q0, threshold, max_iter, unrolled)
 
     def _map(self, problem: StepProblem):
@@ -988,12 +994,9 @@ class SkeletonContactPD(ContactPD):
         docstring)."""
         rig, h, free = self.rig, problem.dt, problem.free
         bone = jnp.asarray(rig.bone)
-        soft = free * (1.0 - jnp.zeros_like(free).at[bone].set(1.0))
-        inertia = problem.mass / h**2 if h > 0 else jnp.zeros_like(problem.mass)
-        stiffness = jnp.maximum(problem.diagonal - inertia, 0.0)
-        p = jnp.where(free > 0, inertia + self.splitting.diagonal(stiffness), 1.0)
+        soft = free * (1.0 - rig.is_bone)
+        p = self._sweep_diagonal(problem)
         p_bone = p[bone, 0]
-        lower, upper = jnp.asarray(rig.lower), jnp.asarray(rig.upper)
         t_end = problem.time + h
 
         def fixed_point_map(x, q):
@@ -1006,9 +1009,7 @@ class SkeletonContactPD(ContactPD):
             x_new = jnp.where(soft > 0, _contact_step(y, problem.x_n, problem.v_n, h, frame, soft), x)
             jac = rig._jacobian(pose)  # (n_b, 3, k)
             g_z = rig.reduce(pose, g[bone])
-            value = rig.joint_values(z)
-            held = ((value <= lower) & (g_z > 0)) | ((value >= upper) & (g_z < 0))
-            move = 1.0 - held.astype(g.dtype)
+            move = 1.0 - _held(rig, z, g_z)
             block = jnp.einsum("vik,v,vil->kl", jac, p_bone, jac) * move[:, None] * move[None, :]
             d_z = jnp.linalg.solve(block + jnp.diag(1.0 - move), g_z * move)
             x_new = x_new.at[bone].set(rig.positions(rig.retract(z, -d_z)))
