@@ -81,15 +81,15 @@ def _with_reference_values(loss, reference):
 @pytest.fixture(scope="module")
 def gradients():
     out = {}
-    reference, _ = _problem(Unrolled())
-    for adjoint in (Implicit(), Unrolled()):
-        loss, theta = _problem(adjoint)
-        checked = loss if isinstance(adjoint, Unrolled) else _with_reference_values(loss, reference)
+    problems = {"Implicit": _problem(Implicit()), "Unrolled": _problem(Unrolled())}
+    reference = problems["Unrolled"][0]
+    for name, (loss, theta) in problems.items():
+        checked = loss if name == "Unrolled" else _with_reference_values(loss, reference)
         # eps = 3e-5: the det-targeting volume term is nonlinear enough that the
         # Richardson-extrapolated differences' O(eps^4) truncation reached 1.2e-6 on alpha at
         # eps = 1e-4 (1.5e-7 at 3e-5).
         errors = check_grad(checked, theta, directions=_directions(theta), eps=3e-5, verbose=False)
-        out[type(adjoint).__name__] = (errors, jax.jit(jax.grad(loss))(theta))
+        out[name] = (errors, jax.jit(jax.grad(loss))(theta))
     return out
 
 
