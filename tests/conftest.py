@@ -11,7 +11,7 @@ from softbody import linsolve  # noqa: E402
 
 #: XLA's CPU backend maps each compiled program's code into memory (~6 mappings for a
 #: small one). A full run compiles thousands of programs; past the kernel's limit
-#: (vm.max_map_count, 65530 by default) the next compilation aborts the process. Keep
+#: (vm.max_map_count, 65530 by default) new code cannot be mapped and compiling fails. Keep
 #: well below it by releasing compiled programs once a test leaves this many mappings.
 MAPPINGS_LIMIT = 20000
 
