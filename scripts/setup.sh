@@ -19,9 +19,11 @@ VENV=${VENV:-.venv}
 
 # System libraries. gmsh's wheel links libGLU/libGL and X libraries; pyvista's offscreen
 # rendering needs an EGL or OSMesa GL (with libgl1 alone VTK segfaults); the browser
-# tests need Debian's chromium. python3-venv gives a bare Debian `python3 -m venv`.
+# tests need Debian's chromium. python3-venv gives a bare Debian `python3 -m venv`. g++
+# builds softbody's native sparse solves on first use (softbody/native; without it the
+# slower callback solver is used).
 pkgs=(libglu1-mesa libgl1 libegl1 libosmesa6 libxrender1 libxcursor1 libxfixes3 libxext6
-      libxft2 libfontconfig1 libxinerama1 libx11-6 libgomp1 ca-certificates)
+      libxft2 libfontconfig1 libxinerama1 libx11-6 libgomp1 ca-certificates g++)
 [ "$job" = test ] && pkgs+=(chromium fonts-dejavu-core)
 if ! "$PYTHON" -c 'import ensurepip, venv' >/dev/null 2>&1; then
     pkgs+=(python3-venv)

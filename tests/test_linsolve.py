@@ -15,12 +15,14 @@ from softbody.linsolve import (
     DenseCholesky,
     Factor,
     SparseCholesky,
+    SparseLDL,
     SparseLU,
     SparsityPattern,
     auto_solver,
 )
 
 SOLVERS = {
+    "SparseLDL": SparseLDL(),
     "SparseCholesky": SparseCholesky(),
     "SparseLU": SparseLU(),
     "DenseCholesky": DenseCholesky(),
@@ -251,7 +253,7 @@ def test_vmap_of_gradients_over_matrices(system):
 # --------------------------------------------------------------------------- host cache
 
 
-@pytest.mark.parametrize("name", ["SparseCholesky", "SparseLU"])
+@pytest.mark.parametrize("name", ["SparseLDL", "SparseCholesky", "SparseLU"])
 def test_evicted_factorisation_is_rebuilt_from_the_factor(system, name, small_cache):
     pattern, data, b, x = system
     solver = SOLVERS[name]
@@ -288,6 +290,31 @@ def test_factorize_runs_once_per_call_and_handles_differ(system):
     assert int(first.aux) != int(second.aux)
 
 
+def test_native_solve_is_compiled_in_without_a_host_callback(system):
+    """SparseLDL's solve is an XLA FFI call in the compiled program; the Python callback
+    appears only in the branch that refactorises an evicted factorisation."""
+    pattern, data, b, x = system
+    solver = SOLVERS["SparseLDL"]
+    factor = jax.block_until_ready(solver.factorize(pattern, data))
+    text = jax.jit(lambda f, b: solver.solve(pattern, f, b)).lower(factor, b).as_text()
+    assert "softbody_ldl_solve" in text
+    assert text.count("xla_ffi_python_cpu_callback") + text.count("xla_python_cpu_callback") == 1
+
+
+def test_native_factors_are_released_with_the_cache(system):
+    from softbody import native
+
+    pattern, data, b, x = system
+    lib = native.library()
+    linsolve.clear_factor_cache()
+    assert lib.softbody_ldl_count() == 0
+    factors = [jax.block_until_ready(SOLVERS["SparseLDL"].factorize(pattern, k * data)) for k in (1, 2)]
+    assert lib.softbody_ldl_count() == 2
+    assert relative_error(SOLVERS["SparseLDL"].solve(pattern, factors[1], b), x / 2) < 1e-10
+    linsolve.clear_factor_cache()
+    assert lib.softbody_ldl_count() == 0
+
+
 # --------------------------------------------------------------------------- PCG specifics
 
 
@@ -312,7 +339,7 @@ def test_pcg_without_preconditioner_converges_too(system):
 # --------------------------------------------------------------------------- errors
 
 
-@pytest.mark.parametrize("name", ["SparseCholesky", "DenseCholesky", "PCG"])
+@pytest.mark.parametrize("name", ["SparseLDL", "SparseCholesky", "DenseCholesky", "PCG"])
 def test_non_spd_matrix_is_refused(system, name):
     pattern, data, _, _ = system
     solver = SOLVERS[name]
@@ -390,5 +417,6 @@ def test_solvers_are_static_and_factors_are_pytrees(system):
 def test_auto_solver_picks_dense_for_small_and_sparse_for_large():
     assert isinstance(auto_solver(100), DenseCholesky)
     assert isinstance(auto_solver(linsolve.DENSE_MAX_N), DenseCholesky)
-    assert isinstance(auto_solver(linsolve.DENSE_MAX_N + 1), SparseCholesky)
-    assert isinstance(auto_solver(30_000), SparseCholesky)
+    assert isinstance(auto_solver(linsolve.DENSE_MAX_N + 1), SparseLDL)
+    assert isinstance(auto_solver(linsolve.LDL_MAX_N), SparseLDL)
+    assert isinstance(auto_solver(linsolve.LDL_MAX_N + 1), SparseCholesky)

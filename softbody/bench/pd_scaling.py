@@ -34,12 +34,14 @@ def _time(f, x, repeats=3, n=20):
 
 def run(out: Path, quick: bool) -> dict:
     from softbody import linsolve
+    from softbody.native import available as native_available
     from softbody.material import Material
     from softbody.meshing.grid import grid_box
     from softbody.model import Options, build, initial_state, prepare
     from softbody.objective import step_objective
 
     solvers = {"SparseCholesky": linsolve.SparseCholesky(), "DenseCholesky": linsolve.DenseCholesky(),
+               **({"SparseLDL": linsolve.SparseLDL()} if native_available() else {}),
                "PCG": linsolve.PCG(tol=1e-8)}
     rows = []
     for cells in CELLS[:2] if quick else CELLS:
