@@ -194,29 +194,36 @@ class LBFGS(IterationMethod):
         evaluate, precondition = problem.evaluate, problem.precondition
         m = self.history
         phi0, g0, q0 = evaluate(x0, q0)
-        zeros = jnp.zeros((m,) + x0.shape, x0.dtype)
+        n_dof = x0.size
+        eye = jnp.eye(m, dtype=x0.dtype)
 
-        def direction(g, s_hist, y_hist, rho, count):
-            # Two-loop recursion. The history is kept in order (oldest first, newest last),
-            # so the loops unroll with static indices; unfilled slots are masked out.
+        def direction(g, s_hist, y_hist, rho, count, sy):
+            # The two-loop recursion in matrix form. The history is a ring buffer: pair
+            # number c (from 0) sits in slot c % m, and ``sy`` keeps A = S Y^T by slot. In
+            # age order (oldest first, slots ``order``) the first loop's alphas solve
+            # (I + diag(rho) triu(A, 1)) alpha = rho * S g and the second loop's
+            # c = alpha - beta solve (I + diag(rho) tril(A^T, -1)) c = alpha - rho * Y r,
+            # so the history enters through four (m, N) products instead of 4 m
+            # vector operations. Unfilled slots get rho = 0, which zeroes their alpha and c.
+            order = (count - m + jnp.arange(m)) % m
             valid = jnp.arange(m) >= m - jnp.minimum(count, m)
-            r, alphas = g, [None] * m
-            for j in reversed(range(m)):
-                alphas[j] = jnp.where(valid[j], rho[j] * jnp.sum(s_hist[j] * r), 0.0)
-                r = r - alphas[j] * y_hist[j]
-            r = precondition(r)
-            for j in range(m):
-                b = rho[j] * jnp.sum(y_hist[j] * r)
-                r = r + jnp.where(valid[j], alphas[j] - b, 0.0) * s_hist[j]
-            return -r
+            rho_o = jnp.where(valid, rho[order], 0.0)
+            a_o = sy[order][:, order]
+            g_flat = g.reshape(-1)
+            upper = eye + rho_o[:, None] * jnp.triu(a_o, 1)
+            alpha = jax.scipy.linalg.solve_triangular(upper, rho_o * (s_hist @ g_flat)[order], lower=False)
+            r = precondition(g - (jnp.zeros(m, g.dtype).at[order].set(alpha) @ y_hist).reshape(g.shape))
+            lower = eye + rho_o[:, None] * jnp.tril(a_o.T, -1)
+            c = jax.scipy.linalg.solve_triangular(lower, alpha - rho_o * (y_hist @ r.reshape(-1))[order], lower=True)
+            return -(r + (jnp.zeros(m, g.dtype).at[order].set(c) @ s_hist).reshape(g.shape))
 
         def cond(c):
             g, k = c[2], c[7]
             return (_norm(g) > threshold) & (k < max_iter)
 
         def body(c):
-            x, phi, g, q, s_hist, y_hist, rho, k, count, evals = c
-            d = direction(g, s_hist, y_hist, rho, count)
+            x, phi, g, q, s_hist, y_hist, rho, k, count, evals, sy_hist = c
+            d = direction(g, s_hist, y_hist, rho, count, sy_hist)
             d = jax.lax.cond(jnp.sum(g * d) < 0, lambda: d, lambda: -precondition(g))
             slope = jnp.sum(g * d)
             phi_t, g_t, q_t = evaluate(x + d, q)
@@ -227,18 +234,24 @@ class LBFGS(IterationMethod):
                 return (x_f, *evaluate(x_f, q))
 
             x_new, phi_new, g_new, q_new = jax.lax.cond(failed, fallback, lambda: (x + d, phi_t, g_t, q_t))
-            s = x_new - x
-            y = g_new - g
+            s = (x_new - x).reshape(-1)
+            y = (g_new - g).reshape(-1)
             sy = jnp.sum(s * y)
             store = sy > 1e-12 * jnp.sqrt(jnp.sum(s * s) * jnp.sum(y * y))
-            s_hist = jnp.where(store, jnp.concatenate([s_hist[1:], s[None]]), s_hist)
-            y_hist = jnp.where(store, jnp.concatenate([y_hist[1:], y[None]]), y_hist)
-            rho = jnp.where(store, jnp.append(rho[1:], 1.0 / jnp.where(store, sy, 1.0)), rho)
+            slot = count % m
+            s_hist = s_hist.at[slot].set(jnp.where(store, s, s_hist[slot]))
+            y_hist = y_hist.at[slot].set(jnp.where(store, y, y_hist[slot]))
+            # The new pair's row s . Y^T and column S . y of A = S Y^T.
+            sy_new = sy_hist.at[slot, :].set(y_hist @ s).at[:, slot].set(s_hist @ y)
+            sy_hist = jnp.where(store, sy_new, sy_hist)
+            rho = rho.at[slot].set(jnp.where(store, 1.0 / jnp.where(store, sy, 1.0), rho[slot]))
             count = count + store.astype(count.dtype)
             evals = evals + 1 + failed.astype(evals.dtype)
-            return x_new, phi_new, g_new, q_new, s_hist, y_hist, rho, k + 1, count, evals
+            return x_new, phi_new, g_new, q_new, s_hist, y_hist, rho, k + 1, count, evals, sy_hist
 
         zero = jnp.asarray(0)
-        init = (x0, phi0, g0, q0, zeros, zeros, jnp.zeros(m, x0.dtype), zero, zero, zero + 1)
-        x, _, g, q, _, _, _, k, _, evals = iterate(cond, body, init, max_iter, unrolled)
+        history = jnp.zeros((m, n_dof), x0.dtype)
+        init = (x0, phi0, g0, q0, history, history, jnp.zeros(m, x0.dtype), zero, zero, zero + 1,
+                jnp.zeros((m, m), x0.dtype))
+        x, _, g, q, _, _, _, k, _, evals, _ = iterate(cond, body, init, max_iter, unrolled)
         return Solution(x, q, k, evals, _norm(g))
