@@ -16,6 +16,7 @@ the PD matrix and its factorisation) is computed once per rollout by :func:`prep
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from typing import Callable, Mapping, Sequence
 
@@ -139,6 +140,13 @@ class Model:
     @property
     def n_tets(self) -> int:
         return self.mesh.n_tets
+
+    @functools.cached_property
+    def corner_incidence(self) -> np.ndarray:
+        """``(n, K)`` int32: each vertex's tet corners (see :func:`softbody.elastic.corner_incidence`)."""
+        from softbody.elastic import corner_incidence
+
+        return corner_incidence(self.mesh.tets)
 
     @property
     def n_channels(self) -> int:
