@@ -171,6 +171,41 @@ class LocalGlobal(IterationMethod):
         return Solution(x, q, k, k + 1, _norm(g))
 
 
+def lbfgs_direction(g: Array, s_hist: Array, y_hist: Array, rho: Array, count: Array, sy: Array,
+                    precondition: Callable) -> Array:
+    """The L-BFGS search direction ``-H g`` by the two-loop recursion in matrix form.
+
+    The history is a ring buffer of ``m`` pairs: pair number ``c`` (from 0) sits in slot
+    ``c % m``. In age order (oldest first) the first loop's alphas solve
+    ``(I + diag(rho) triu(A, 1)) alpha = rho * S g`` and the second loop's ``c = alpha - beta``
+    solve ``(I + diag(rho) tril(A^T, -1)) c = alpha - rho * Y r`` with ``A = S Y^T``, so the
+    history enters through four ``(m, N)`` products instead of ``4 m`` vector operations.
+    Unfilled slots get ``rho = 0``, which zeroes their alpha and c.
+
+    Arguments:
+        g: the gradient, any shape with ``N`` entries.
+        s_hist, y_hist: ``(m, N)`` steps and gradient changes by slot.
+        rho: ``(m,)`` ``1 / (s . y)`` by slot; count: pairs stored so far (int).
+        sy: ``(m, m)`` ``A = S Y^T`` by slot (``A[i, j] = s_i . y_j``).
+        precondition: ``r -> H0 r`` (the initial inverse Hessian).
+
+    Returns:
+        ``-H g``, shaped like ``g``.
+    """
+    m = s_hist.shape[0]
+    eye = jnp.eye(m, dtype=g.dtype)
+    order = (count - m + jnp.arange(m)) % m
+    valid = jnp.arange(m) >= m - jnp.minimum(count, m)
+    rho_o = jnp.where(valid, rho[order], 0.0)
+    a_o = sy[order][:, order]
+    upper = eye + rho_o[:, None] * jnp.triu(a_o, 1)
+    alpha = jax.scipy.linalg.solve_triangular(upper, rho_o * (s_hist @ g.reshape(-1))[order], lower=False)
+    r = precondition(g - (jnp.zeros(m, g.dtype).at[order].set(alpha) @ y_hist).reshape(g.shape))
+    lower = eye + rho_o[:, None] * jnp.tril(a_o.T, -1)
+    c = jax.scipy.linalg.solve_triangular(lower, alpha - rho_o * (y_hist @ r.reshape(-1))[order], lower=True)
+    return -(r + (jnp.zeros(m, g.dtype).at[order].set(c) @ s_hist).reshape(g.shape))
+
+
 @dataclass(frozen=True)
 class LBFGS(IterationMethod):
     """L-BFGS with the PD matrix as initial Hessian and an Armijo safeguard.
@@ -195,27 +230,6 @@ class LBFGS(IterationMethod):
         m = self.history
         phi0, g0, q0 = evaluate(x0, q0)
         n_dof = x0.size
-        eye = jnp.eye(m, dtype=x0.dtype)
-
-        def direction(g, s_hist, y_hist, rho, count, sy):
-            # The two-loop recursion in matrix form. The history is a ring buffer: pair
-            # number c (from 0) sits in slot c % m, and ``sy`` keeps A = S Y^T by slot. In
-            # age order (oldest first, slots ``order``) the first loop's alphas solve
-            # (I + diag(rho) triu(A, 1)) alpha = rho * S g and the second loop's
-            # c = alpha - beta solve (I + diag(rho) tril(A^T, -1)) c = alpha - rho * Y r,
-            # so the history enters through four (m, N) products instead of 4 m
-            # vector operations. Unfilled slots get rho = 0, which zeroes their alpha and c.
-            order = (count - m + jnp.arange(m)) % m
-            valid = jnp.arange(m) >= m - jnp.minimum(count, m)
-            rho_o = jnp.where(valid, rho[order], 0.0)
-            a_o = sy[order][:, order]
-            g_flat = g.reshape(-1)
-            upper = eye + rho_o[:, None] * jnp.triu(a_o, 1)
-            alpha = jax.scipy.linalg.solve_triangular(upper, rho_o * (s_hist @ g_flat)[order], lower=False)
-            r = precondition(g - (jnp.zeros(m, g.dtype).at[order].set(alpha) @ y_hist).reshape(g.shape))
-            lower = eye + rho_o[:, None] * jnp.tril(a_o.T, -1)
-            c = jax.scipy.linalg.solve_triangular(lower, alpha - rho_o * (y_hist @ r.reshape(-1))[order], lower=True)
-            return -(r + (jnp.zeros(m, g.dtype).at[order].set(c) @ s_hist).reshape(g.shape))
 
         def cond(c):
             g, k = c[2], c[7]
@@ -223,7 +237,7 @@ class LBFGS(IterationMethod):
 
         def body(c):
             x, phi, g, q, s_hist, y_hist, rho, k, count, evals, sy_hist = c
-            d = direction(g, s_hist, y_hist, rho, count, sy_hist)
+            d = lbfgs_direction(g, s_hist, y_hist, rho, count, sy_hist, precondition)
             d = jax.lax.cond(jnp.sum(g * d) < 0, lambda: d, lambda: -precondition(g))
             slope = jnp.sum(g * d)
             phi_t, g_t, q_t = evaluate(x + d, q)
