@@ -968,7 +968,7 @@ class ContactPD(IterationMethod):
             q0,
         )
         sol = solve(*jax.lax.stop_gradient((x0, q0, *consts)))
-        position, consts = jax.closure_convert(lambda x, q: fixed_point_map(x, q)[0], sol.x, sol.q)
+        position, consts = _closure_convert(lambda x, q: fixed_point_map(x, q)[0], sol.x, sol.q)
         linear_solve = functools.partial(
             _anderson_linear_solve,
             history=max(int(self.history), 1),
@@ -1119,6 +1119,33 @@ def _anderson_linear_solve(matvec, b, *, history: int, rtol: float, max_iter: in
     )
     u, *_ = jax.lax.while_loop(lambda c: (c[2] > threshold) & (c[1] < max_iter), body, init)
     return u
+
+
+def _closure_convert(fun: Callable, *args):
+    """``jax.closure_convert`` that hoists every traced value ``fun`` closes over.
+
+    ``jax.closure_convert`` leaves traced values that cannot carry a tangent (integers,
+    such as a host factorisation's handle inside the skeleton's condensation) in the
+    closure; passed to :func:`_fixed_point` as a non-differentiable argument they then
+    leak out of their trace. Here they become arguments too (their tangents are float0).
+
+    Returns:
+        ``(converted, hoisted)``: ``converted(*args, *hoisted)`` computes ``fun(*args)``.
+    """
+    closed, out_shape = jax.make_jaxpr(fun, return_shape=True)(*args)
+    traced = [isinstance(c, jax.core.Tracer) for c in closed.consts]
+    hoisted = [c for c, t in zip(closed.consts, traced) if t]
+    kept = [c for c, t in zip(closed.consts, traced) if not t]
+    n_args = len(args)
+    out_tree = jax.tree.structure(out_shape)
+
+    def converted(*args_and_hoisted):
+        given, lifted = iter(args_and_hoisted[n_args:]), iter(kept)
+        consts = [next(given) if t else next(lifted) for t in traced]
+        out = jax.core.eval_jaxpr(closed.jaxpr, consts, *jax.tree.leaves(args_and_hoisted[:n_args]))
+        return jax.tree.unflatten(out_tree, out)
+
+    return converted, hoisted
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1))

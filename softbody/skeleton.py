@@ -947,11 +947,10 @@ class SkeletonContactPD(ContactPD):
     Contact acts on the soft vertices: bones are meant to lie inside the skin. Steps where
     nothing is near an obstacle run ``free_method``, :class:`SkeletonPD` on the same rig.
 
-    Gradients: not yet. Differentiating a rollout with this method fails while lowering
-    (``TypeError: No constant handler for type: ... DynamicJaxprTracer``): a value traced
-    inside the rollout leaks into the contact solver's fixed-point map as a constant
-    (making the SchurFactor's index arrays static did not cure it). Forward simulation
-    is tested.
+    Gradients: as for :class:`~softbody.contact.ContactPD`, the returned positions carry
+    the implicit derivative of the contact fixed point (active set held fixed), in
+    forward and reverse mode; tested against central differences on a jointed body
+    sliding down an incline (d slide / d mu_k).
 
     Attributes:
         rig: the :class:`Rig` (skeleton bound to the scene's mesh).

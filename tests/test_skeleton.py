@@ -427,3 +427,32 @@ def test_jointed_body_sticks_on_an_incline_below_the_friction_angle_and_slides_a
     theta = np.arctan(1.1 * mu_s)
     expected = G * (np.sin(theta) - mu_k * np.cos(theta))
     assert acceleration(com, dt, 15) == pytest.approx(expected, rel=0.01)
+
+
+def test_gradient_through_skeleton_contact_matches_central_differences(arm):
+    """Reverse mode through SkeletonContactPD: the slide of a jointed body down an incline
+    (tan theta = 1.1 mu_s) differentiated with respect to the kinetic friction coefficient,
+    against central differences (eps 1e-4: truncation ~eps^2 relative; forward tol 1e-10)."""
+    mesh, _ = arm
+    rig = Skeleton([Link("upper", "bone:upper", None, Free()),
+                    Link("fore", "bone:fore", "upper", Revolute((0.0, 1.0, 0.0), (0.10, 0.02, 0.02)))]).bind(mesh)
+    dt, mu_s = 0.01, 0.5
+    model, params = build(mesh, Material(E=1e5, nu=0.3, density=1000.0),
+                          options=Options(dt=dt, gravity=(0.0, 0.0, 0.0), tol=1e-10, max_iter=3000,
+                                          method=SkeletonContactPD(rig=rig)),
+                          obstacles=[Plane(mu_s=mu_s, mu_k=0.4)])
+    r = rot_y(np.arctan(1.1 * mu_s))
+    x0 = mesh.points @ r.T
+    forces = ramped_gravity(np.asarray(prepare(model, params).mass), 15, dt)
+
+    def slide(mu_k):
+        plane = {**params.obstacles[0], "normal": jnp.asarray(r[:, 2]), "mu_k": mu_k}
+        p = eqx.tree_at(lambda q: q.obstacles, params, (plane,))
+        traj = rollout(model, p, initial_state(model, p, x=x0), forces=forces)
+        return jnp.mean(traj.x[-1] @ jnp.asarray(r[:, 0]))
+
+    grad = float(jax.jit(jax.grad(slide))(jnp.asarray(0.4)))
+    f, eps = jax.jit(slide), 1e-4
+    fd = float((f(jnp.asarray(0.4 + eps)) - f(jnp.asarray(0.4 - eps))) / (2 * eps))
+    assert fd < 0  # more friction, less slide
+    assert grad == pytest.approx(fd, rel=1e-4)
