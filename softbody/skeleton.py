@@ -50,7 +50,7 @@ import numpy as np
 
 from softbody import rotation as rot
 from softbody.meshing import TetMesh
-from softbody.contact import ContactPD, _contact_step, _nearest_obstacle, _norm
+from softbody.contact import ContactPD, _contact_step, _nearest_obstacle
 from softbody.model import SceneError
 from softbody.solvers import IterationMethod, Solution, StepProblem, iterate
 
@@ -508,8 +508,10 @@ class Rig:
         twists; no ``(n_b, 3, n_dofs)`` Jacobian is formed.
         """
         one_hot = jnp.asarray(self.vertex_one_hot)
-        wrench = jnp.concatenate([one_hot.T @ force, one_hot.T @ jnp.cross(pose.x, force)], axis=1)  # (L, 6)
-        return jnp.einsum("lak,la->k", pose.twists, wrench)
+        moment = jnp.concatenate([force, jnp.cross(pose.x, force)], axis=1)  # (n_b, 6)
+        # Column by column: matrix-vector products took half the time of one (L, n_b) x (n_b, 6) product.
+        wrench = jnp.stack([one_hot.T @ m for m in moment.T], axis=1)  # (L, 6)
+        return wrench.reshape(-1) @ pose.twists.reshape(wrench.size, -1)
 
     def retract(self, z: Array, dz: Array) -> Array:
         """Move ``z`` by the tangent step ``dz`` ``(n_dofs,)`` and stay on the manifold.
@@ -597,18 +599,22 @@ class SchurFactor(eqx.Module):
 
     With ``A = [[Q_ff, Q_fr], [Q_rf, Q_rr]]`` (free and bone vertices; scalar ``n x n``),
     the Schur complement ``S0 = Q_rr - Q_rf Q_ff^-1 Q_fr`` and the coupling
-    ``Y = Q_ff^-1 Q_fr`` enter the reduced step only through their sums over links
-    (bones move rigidly), so only those moments are kept.
+    ``Y = Q_ff^-1 Q_fr`` enter the reduced step only through their products with the link
+    features ``F = [E, E * X]`` ``(n_b, 4L)`` (``E`` the bone vertices' link indicator,
+    ``X`` their rest positions): bones move rigidly, each by an affine map of its rest
+    positions, so only those products are kept.
 
     Attributes:
         factor: the factorisation of ``A`` with the bone vertices decoupled (their rows
             and columns reduced to the diagonal): solves with it apply ``Q_ff^-1``.
-        data_rf: ``(m,)`` the nonzero entries of ``A`` in bone rows and free columns
-            (``Q_rf``), at ``rf_rows`` (positions in the bone list) and ``rf_cols``
-            (vertices), ``(m,)`` ints.
-        moments: ``(4L, 4L)`` ``F^T S0 F`` with ``F = [E, E * X]`` ``(n_b, 4L)``: ``E`` the
-            bone vertices' link indicator, ``X`` their rest positions.
-        coupling: ``(n, 4L)`` ``Y F``.
+        data_rf: ``(n_b, K)`` the nonzero entries of ``A`` in bone rows and free columns
+            (``Q_rf``), row by row (in the bone list's order), at the vertices
+            ``rf_cols`` ``(n_b, K)`` ints; rows with fewer than ``K`` entries are padded
+            with zeros.
+        moments: ``(4L, 4L)`` ``F^T S0 F``.
+        coupling: ``(n, 4L)`` ``Y F`` on the free rows and ``-F`` on the bone rows, so that
+            ``v - coupling K`` places the bones by the link motions ``K`` as it corrects
+            the free rows (see :func:`_solve_reduced`).
         solver, pattern: the linear solver and sparsity pattern (static).
     """
 
@@ -616,11 +622,9 @@ class SchurFactor(eqx.Module):
     data_rf: Array
     moments: Array
     coupling: Array
-    rf_rows: Array
     rf_cols: Array
     solver: object = eqx.field(static=True)
     pattern: object = eqx.field(static=True)
-    n_b: int = eqx.field(static=True)
 
     def solve_ff(self, b: Array) -> Array:
         """``Q_ff^-1 b_f`` on the free rows (``b`` ``(n, 3)`` with zero bone rows; bone rows stay 0)."""
@@ -628,7 +632,8 @@ class SchurFactor(eqx.Module):
 
     def q_rf(self, v: Array) -> Array:
         """``Q_rf v_f`` ``(n_b, 3)`` for ``v`` ``(n, 3)``."""
-        return jax.ops.segment_sum(self.data_rf[:, None] * v[self.rf_cols], self.rf_rows, num_segments=self.n_b)
+        # Gathers summed column by column: a third of the time of a segment sum (scatter-add).
+        return sum(self.data_rf[:, j, None] * v[self.rf_cols[:, j]] for j in range(self.rf_cols.shape[1]))
 
 
 def _features(rig: Rig) -> np.ndarray:
@@ -641,8 +646,10 @@ def schur_factor(solver, pattern, data: Array, rig: Rig) -> SchurFactor:
     """Condense the PD matrix onto the skeleton (once per rollout; differentiable in ``data``).
 
     One extra factorisation (``A`` with the bone vertices decoupled, i.e. ``Q_ff``), one
-    solve with ``n_b`` right-hand sides for ``Y = Q_ff^-1 Q_fr``, then
-    ``S0 = Q_rr - Q_rf Y`` and the link moments of ``S0`` and ``Y``.
+    solve with ``4L`` right-hand sides for ``Y F = Q_ff^-1 (Q_fr F)``, then
+    ``F^T S0 F = F^T Q_rr F - (Q_fr F)^T (Y F)``. Only the ``4L`` link features enter, not
+    the ``n_b`` bone vertices one by one (a fourth of the right-hand sides, and no dense
+    ``n_b x n x n_b`` product).
 
     Arguments:
         solver: the scene's :class:`~softbody.linsolve.LinearSolver`; pattern: its
@@ -661,44 +668,43 @@ def schur_factor(solver, pattern, data: Array, rig: Rig) -> SchurFactor:
     factor = solver.factorize(pattern, data_ff)
     position = np.full(n, -1)
     position[bone] = np.arange(len(bone))
+    f = _features(rig)
     rf = np.flatnonzero(rows & ~cols)
-    q_fr = jnp.zeros((n, len(bone))).at[pattern.cols[rf], position[pattern.rows[rf]]].add(data[rf])  # zero bone rows
-    y = solver.solve(pattern, factor, q_fr)
+    rf = rf[np.argsort(position[pattern.rows[rf]], kind="stable")]  # grouped by bone row
+    row = position[pattern.rows[rf]]
+    per_row = np.bincount(row, minlength=len(bone))
+    table = np.full((len(bone), max(int(per_row.max()), 1)), len(rf))  # padded with the index of a zero
+    table[row, np.arange(len(rf)) - np.repeat(np.cumsum(per_row) - per_row, per_row)] = np.arange(len(rf))
+    q_fr_f = jnp.zeros((n, f.shape[1])).at[pattern.cols[rf]].add(data[rf, None] * f[row])
+    y_f = solver.solve(pattern, factor, q_fr_f)  # Y F, zero bone rows
     rr = np.flatnonzero(rows & cols)
     q_rr = jnp.zeros((len(bone), len(bone))).at[position[pattern.rows[rr]], position[pattern.cols[rr]]].add(data[rr])
-    s0 = q_rr - q_fr.T @ y
-    s0 = 0.5 * (s0 + s0.T)
-    f = jnp.asarray(_features(rig))
-    return SchurFactor(factor, data[rf], f.T @ s0 @ f, y @ f, jnp.asarray(position[pattern.rows[rf]]),
-                       jnp.asarray(pattern.cols[rf]), solver, pattern, len(bone))
+    moments = f.T @ q_rr @ f - q_fr_f.T @ y_f
+    data_rf = jnp.concatenate([data[rf], jnp.zeros(1, data.dtype)])[table]
+    return SchurFactor(factor, data_rf, 0.5 * (moments + moments.T), y_f.at[bone].set(-f),
+                       jnp.asarray(np.append(pattern.cols[rf], 0)[table]), solver, pattern)
 
 
-def _reduced_matrix(moments: Array, pose: Pose) -> Array:
-    """``B^T (S0 x I3) B`` ``(k, k)`` from the link moments of ``S0`` at the pose.
+def _link_motions(pose: Pose, move: Array) -> Array:
+    """``G`` ``(4L, 3, n_dofs)``: the motion of every link per unit of each dof, in the layout
+    of the features ``F`` (:class:`SchurFactor`), so that ``B d_z = F (G d_z)`` link by link.
 
-    Per link pair, ``H[l, m] = sum_{v in l, w in m} S0_vw Phi_v^T Phi_w`` with
-    ``Phi_v = [I, -[x_v]x]`` (so that ``B_v = Phi_v T_l``), which needs
-    ``sum S0``, ``sum S0 x_w``, ``sum S0 x_v`` and ``sum S0 x_v x_w^T``; with
-    ``x = R_l X + p_l`` these are the rest moments rotated and shifted.
+    A dof whose twist on link ``l`` is ``(a, w)`` moves its bone vertex ``x = R_l X + p_l``
+    by ``a + w x x = c + M X`` with ``c = a + w x p_l`` (row ``l``) and ``M = [w]x R_l``
+    (column ``j`` of ``M`` in row ``L + 3 l + j``). Held dofs (``move = 0``) get zero columns.
+    The cross products are spelled out by component (XLA's batched tiny matmuls are slower).
     """
-    n_links = pose.r.shape[0]
-    r, p = pose.r, pose.p
-    n0 = moments[:n_links, :n_links]
-    n1 = moments[:n_links, n_links:].reshape(n_links, n_links, 3)  # [l, m]: sum S0 X_w
-    n2 = moments[n_links:, n_links:].reshape(n_links, 3, n_links, 3).transpose(0, 2, 1, 3)
-    a = jnp.einsum("mij,lmj->lmi", r, n1) + n0[:, :, None] * p[None, :, :]  # sum S0 x_w
-    b = jnp.swapaxes(a, 0, 1)  # sum S0 x_v
-    rn1 = jnp.einsum("lij,mlj->lmi", r, n1)  # R_l sum S0 X_v
-    m2 = (jnp.einsum("lij,lmjk,mnk->lmin", r, n2, r)
-          + rn1[:, :, :, None] * p[None, :, None, :]
-          + p[:, None, :, None] * (a - n0[:, :, None] * p[None, :, :])[:, :, None, :]
-          + n0[:, :, None, None] * p[:, None, :, None] * p[None, :, None, :])
-    eye = jnp.eye(3)
-    top = jnp.concatenate([n0[:, :, None, None] * eye, -_skew(a)], axis=3)
-    bottom = jnp.concatenate([_skew(b), jnp.trace(m2, axis1=2, axis2=3)[:, :, None, None] * eye
-                              - jnp.swapaxes(m2, 2, 3)], axis=3)
-    h = jnp.concatenate([top, bottom], axis=2)  # (L, L, 6, 6)
-    return jnp.einsum("lak,lmab,mbj->kj", pose.twists, h, pose.twists)
+    twists = pose.twists * move
+    a, w = twists[:, :3], twists[:, 3:]  # (L, 3, k)
+
+    def cross(u):  # w x u for one vector u (L, 3) per link: (L, 3, k)
+        u = u[:, :, None]
+        return jnp.stack([w[:, 1] * u[:, 2] - w[:, 2] * u[:, 1], w[:, 2] * u[:, 0] - w[:, 0] * u[:, 2],
+                          w[:, 0] * u[:, 1] - w[:, 1] * u[:, 0]], axis=1)
+
+    m = jnp.stack([cross(pose.r[:, :, j]) for j in range(3)], axis=1)  # (L, j, 3, k)
+    n_links, _, k = twists.shape
+    return jnp.concatenate([a + cross(pose.p), m.reshape(3 * n_links, 3, k)])  # explicit: k may be 0
 
 
 def _held(rig: Rig, z: Array, g_z: Array) -> Array:
@@ -714,30 +720,23 @@ def _check_size(rig: Rig, n: int) -> None:
         raise SkeletonError(f"the rig was bound to a mesh of {rig.n_vertices} vertices, the scene has {n}")
 
 
-def _direction(factor: SchurFactor, rig: Rig, pose: Pose, g: Array, locked: Array) -> tuple[Array, Array]:
-    bone = jnp.asarray(rig.bone)
-    return _solve_reduced(factor, rig, pose, g.at[bone].set(0.0), rig.reduce(pose, g[bone]), locked)
-
-
 def _solve_reduced(factor: SchurFactor, rig: Rig, pose: Pose, g_f: Array, g_z: Array,
                    locked: Array) -> tuple[Array, Array]:
     """Solve the reduced PD system for the right-hand side ``(g_f, g_z)`` (``g_f`` ``(n, 3)``
     with zero bone rows, ``g_z`` ``(n_dofs,)``); see :func:`schur_direction`."""
-    bone = jnp.asarray(rig.bone)
-    pose = pose._replace(twists=pose.twists * (1.0 - locked))
+    move = 1.0 - locked
+    motion = _link_motions(pose, move)  # (4L, 3, k)
     v = factor.solve_ff(g_f)  # Q_ff^-1 g_f, zero bone rows
-    rhs = g_z * (1.0 - locked) - rig.reduce(pose, factor.q_rf(v))
-    small = _reduced_matrix(factor.moments, pose) + jnp.diag(locked)
-    d_z = jnp.linalg.solve(small, rhs)
-    twist = jnp.einsum("lak,k->la", pose.twists, d_z)  # (L, 6): each link's (a, omega)
-    a, omega = twist[:, :3], twist[:, 3:]
-    # Bone rows move rigidly: a + omega x x_v = c + [omega]x R X_v with c = a + omega x p.
-    c = a + jnp.cross(omega, pose.p)
-    m = _skew(omega) @ pose.r  # (L, 3, 3)
-    k = jnp.concatenate([c, jnp.swapaxes(m, 1, 2).reshape(-1, 3)])  # (4L, 3)
-    link = jnp.asarray(rig.vertex_link)
-    d_bone = a[link] + jnp.cross(omega[link], pose.x)
-    return (v - factor.coupling @ k).at[bone].set(d_bone), d_z
+    rhs = (g_z - rig.reduce(pose, factor.q_rf(v))) * move
+    rows, _, k = motion.shape  # explicit shapes: k may be 0
+    columns = motion.reshape(3 * rows, k)  # (12L, k)
+    small = columns.T @ (factor.moments @ motion.reshape(rows, 3 * k)).reshape(3 * rows, k)
+    d_z = jnp.linalg.solve(small + jnp.diag(locked), rhs)
+    # Free rows v - Y F K, bone rows F K (the bones' rigid motion), K = G d_z. Column by
+    # column: three matrix-vector products took a third of the time of one (n, 4L) x (4L, 3)
+    # product on CPU.
+    k = motion @ d_z
+    return jnp.stack([v[:, i] - factor.coupling @ k[:, i] for i in range(3)], axis=1), d_z
 
 
 def schur_direction(factor: SchurFactor, rig: Rig, z: Array, g: Array, locked: Array) -> tuple[Array, Array]:
@@ -749,9 +748,10 @@ def schur_direction(factor: SchurFactor, rig: Rig, z: Array, g: Array, locked: A
         (B^T S0 B) d_z = B^T (g_r - Q_rf Q_ff^-1 g_f),    d_f = Q_ff^-1 g_f - Y B d_z,
 
     one sparse solve with ``Q_ff``, one sparse product with ``Q_rf``, and products with
-    the link moments of ``S0`` and ``Y`` (:class:`SchurFactor`): bones move rigidly, so
-    ``B d_z`` is one twist per link and ``B^T S0 B`` a sum of ``6 x 6`` blocks per link
-    pair. No dense ``n_b``-sized product is formed per iteration.
+    ``F^T S0 F`` and ``Y F`` (:class:`SchurFactor`): bones move rigidly, so ``B d_z`` is
+    one affine map of the rest positions per link, ``B d_z = F G d_z``
+    (:func:`_link_motions`), and ``B^T S0 B = G^T (F^T S0 F) G``. No dense
+    ``n_b``-sized product is formed per iteration.
 
     Arguments:
         factor: from :func:`schur_factor`.
@@ -763,7 +763,8 @@ def schur_direction(factor: SchurFactor, rig: Rig, z: Array, g: Array, locked: A
         ``(d, d_z)``: ``(n, 3)`` displacement (bone rows ``B d_z``) and ``(n_dofs,)``; the
         step is ``x - d``, ``z - d_z``.
     """
-    return _direction(factor, rig, rig.pose(z), g, locked)
+    pose, bone = rig.pose(z), jnp.asarray(rig.bone)
+    return _solve_reduced(factor, rig, pose, g.at[bone].set(0.0), rig.reduce(pose, g[bone]), locked)
 
 
 @dataclass(frozen=True, eq=False)
@@ -872,12 +873,12 @@ class SkeletonPD(IterationMethod):
         bone = jnp.asarray(rig.bone)
 
         def reduced(g, pose, z):
-            """The dofs held at a limit this iteration, and the norm of ``(g_f, B^T g_r)``
-            over the dofs that may move."""
+            """The reduced gradient ``B^T g_r``, the dofs held at a limit this iteration, and
+            the norm of ``(g_f, B^T g_r)`` over the dofs that may move."""
             g_z = rig.reduce(pose, g[bone])
             locked = _held(rig, z, g_z)
             gnorm = jnp.sqrt(jnp.sum((g * (1.0 - rig.is_bone)) ** 2) + jnp.sum((g_z * (1.0 - locked)) ** 2))
-            return locked, gnorm
+            return g_z, locked, gnorm
 
         z0 = rig.coordinates(x0[bone])
         pose0 = rig.pose(z0)
@@ -885,11 +886,11 @@ class SkeletonPD(IterationMethod):
         phi0, g0, q0 = evaluate(x0, q0)
 
         def cond(c):
-            return (c[7] > threshold) & (c[9] < max_iter)
+            return (c[8] > threshold) & (c[10] < max_iter)
 
         def body(c):
-            x, z, q, phi, g, pose, locked, _, evals, k = c
-            d, d_z = _direction(factor, rig, pose, g, locked)
+            x, z, q, phi, g, pose, g_z, locked, _, evals, k = c
+            d, d_z = _solve_reduced(factor, rig, pose, g.at[bone].set(0.0), g_z, locked)
             slope = jnp.sum(g * d)  # -dPhi/dalpha along (x - alpha d, z - alpha d_z)
 
             def trial(alpha):
@@ -914,7 +915,7 @@ class SkeletonPD(IterationMethod):
             return (x, z, q, phi, g, pose, *reduced(g, pose, z), evals + 1 + tries, k + 1)
 
         init = (x0, z0, q0, phi0, g0, pose0, *reduced(g0, pose0, z0), jnp.asarray(1), jnp.asarray(0))
-        x, _, q, _, _, _, _, gnorm, evals, k = iterate(cond, body, init, max_iter, unrolled)
+        x, _, q, _, _, _, _, _, gnorm, evals, k = iterate(cond, body, init, max_iter, unrolled)
         return Solution(x, q, k, evals, gnorm)
 
 
