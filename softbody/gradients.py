@@ -110,7 +110,7 @@ class Implicit(Adjoint):
         from softbody import rotation as rot
         from softbody.elastic import deformation_gradient
         from softbody.model import State
-        from softbody.objective import solve_step, step_objective
+        from softbody.objective import solve_step, step_gradient_vjp, step_hessian, step_objective
 
         if model.obstacles:
             # Contact adds impulses beyond the stationarity of Phi: the contact solver
@@ -151,27 +151,30 @@ class Implicit(Adjoint):
             if chart is None:
                 factor = jax.lax.stop_gradient(prep.factor)
                 solver, pattern = model.linear_solver, model.pattern
-                # Linearise once: the loop then applies only the tangent map (the rotations'
-                # implicit derivative at the solution), not the primal residual every time.
-                _, hvp = jax.linearize(lambda x: residual(x, *args), xs)
+                # The per-tet stress derivative is assembled once; each CG iteration then
+                # costs gathers and a 9 x 9 product per tet (step_hessian).
+                hvp = step_hessian(model, prep, x_n, v_n, q_n, activation, force, xs, qs, static=static)
                 lam = _pcg(hvp, lambda r: solver.solve(pattern, factor, r), xbar * free, tol, self.max_iter)
             else:
                 # Stationary in the chart's coordinates d (x = embed(d)): the reduced
                 # gradient J^T g, J = d embed/d d, vanishes; its Jacobian is the Hessian of
                 # Phi(embed(d)), symmetric. The cotangent maps to J^T xbar and back by J.
+                # That Hessian is J^T H J plus the chart's curvature weighted by the
+                # gradient g (nonzero on the bones: the joint forces).
                 embed, precondition, size = chart
                 zero = jnp.zeros(size, xs.dtype)
-
-                def reduced(d):
-                    x, pull = jax.vjp(embed, d)
-                    return pull(residual(x, *args))[0]
-
-                _, hvp = jax.linearize(reduced, zero)
                 _, push = jax.linearize(embed, zero)
-                (dbar,) = jax.linear_transpose(push, zero)(xbar)
-                lam = push(_pcg(hvp, precondition, dbar, tol, self.max_iter))
-            _, vjp = jax.vjp(lambda *a: residual(xs, *a), *args)
-            ct_prep, ct_xn, ct_vn, ct_qn, ct_a, ct_f = vjp(-lam)
+                pull = jax.linear_transpose(push, zero)
+                hessian = step_hessian(model, prep, x_n, v_n, q_n, activation, force, xs, qs, static=static)
+                g = residual(xs, *args)
+                _, curvature = jax.linearize(lambda d: jax.vjp(embed, d)[1](g)[0], zero)
+
+                def hvp(d):
+                    return pull(hessian(push(d)))[0] + curvature(d)
+
+                lam = push(_pcg(hvp, precondition, pull(xbar)[0], tol, self.max_iter))
+            ct_prep, ct_xn, ct_vn, ct_qn, ct_a, ct_f = step_gradient_vjp(
+                model, prep, x_n, v_n, q_n, activation, force, xs, qs, -lam, static=static)
             ct_xn = ct_xn + xbar * (1.0 - free)  # fixed vertices: x* = x_n there
             return ct_prep, ct_xn, ct_vn, ct_qn, jnp.zeros_like(t), ct_a, ct_f
 
