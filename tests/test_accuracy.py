@@ -358,6 +358,43 @@ def test_newton_hessian_matches_the_objective_gradient(muscle_beam):
         np.testing.assert_allclose(got, expected, rtol=0, atol=1e-10 * np.abs(expected).max())
 
 
+def test_adjoint_hessian_and_parameter_cotangents_match_autodiff_of_the_objective(muscle_beam):
+    """The implicit adjoint's two shortcuts equal plain autodiff of the step gradient, to
+    round-off: step_hessian (per-tet dP/dF assembled once) against the forward derivative,
+    and step_gradient_vjp (a tangent in place of the reverse pass through the stress)
+    against jax.vjp, for every argument, on the beam with muscle and strain-rate damping."""
+    from softbody.objective import step_gradient_vjp, step_hessian, step_objective
+
+    model, params, state = muscle_beam
+    prep = prepare(model, params)
+    activation = jnp.asarray([0.3])
+    x = state.x + 1e-3 * state.v
+    q = reference._exact_rotations(deformation_gradient(model, prep.dminv, x), state.rot)
+    rng = np.random.default_rng(2)
+    dx = jnp.asarray(rng.normal(size=x.shape))
+    lam = jnp.asarray(rng.normal(size=x.shape))
+
+    def gradient(prep, x_n, v_n, q_n, activation, y):
+        evaluate, _ = step_objective(model, prep, x_n, v_n, q_n, activation, None, static=False)
+        return evaluate(y, q)[1]
+
+    args = (prep, state.x, state.v, state.rot, activation)
+    expected_hv = jax.jvp(lambda y: gradient(*args, y), (x,), (dx,))[1]
+    got_hv = step_hessian(model, *args, None, x, q, static=False)(dx)
+    np.testing.assert_allclose(got_hv, expected_hv, rtol=0, atol=1e-10 * np.abs(expected_hv).max())
+
+    expected = jax.vjp(lambda *a: gradient(*a, x), *args)[1](lam)
+    got = step_gradient_vjp(model, *args, None, x, q, lam, static=False)[:5]
+    checked = 0
+    for e, g in zip(jax.tree.leaves(expected), jax.tree.leaves(got)):
+        if e.dtype == jax.dtypes.float0:
+            continue
+        scale = np.abs(np.asarray(e)).max()
+        np.testing.assert_allclose(g, e, rtol=0, atol=1e-10 * max(scale, 1e-300))
+        checked += scale > 0
+    assert checked >= 5  # dminv, volumes, weights, x_n, v_n, the activation at least
+
+
 @pytest.mark.slow
 def test_ode_jacobian_matches_autodiff(muscle_beam):
     """The block-assembled Jacobian of the ODE's accelerations (what implicit diffrax
