@@ -12,11 +12,15 @@
   gradient against the horizon (50 ... 5000 steps) for ``Implicit``, ``Unrolled``
   (checkpointed) and ``Unrolled`` without any checkpointing (plain autodiff through the
   iterations), on the same 2673-vertex mesh; ``peak_rss_mb_1000_steps`` is Implicit's.
+  A child is stopped at half the machine's memory (16 GB at most) or 30 minutes, and a
+  horizon predicted (linearly from the previous one) to take longer is not started; the
+  table records which and why.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import time
@@ -107,32 +111,86 @@ def _child(adjoint: str, horizon: int) -> None:
                       "peak_rss_mb": rss, "finite": bool(np.all(np.isfinite(np.asarray(g))))}))
 
 
-def memory_table(horizons, adjoints, timeout: float) -> list[dict]:
+def _memory_cap_mb() -> float:
+    """Children are stopped past half the machine's memory (16 GB at most): no swapping."""
+    try:
+        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**20
+    except (ValueError, OSError, AttributeError):
+        total = 8192.0
+    return min(0.5 * total, 16384.0)
+
+
+def _rss_mb(pid: int) -> float | None:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return None
+
+
+def _watch(cmd: list[str], timeout: float, cap_mb: float) -> tuple[str | None, float, str, str]:
+    """Run ``cmd``; stop it past ``timeout`` seconds or ``cap_mb`` resident MB.
+
+    Returns ``(why_stopped or None, peak resident MB seen by polling, stdout, stderr)``.
+    """
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    t0, why, peak = time.perf_counter(), None, 0.0
+    while proc.poll() is None:
+        peak = max(peak, _rss_mb(proc.pid) or 0.0)
+        elapsed = time.perf_counter() - t0
+        if peak > cap_mb:
+            why = f"out of memory: resident set over the {cap_mb:.0f} MB cap after {elapsed:.0f} s (stopped)"
+        elif elapsed > timeout:
+            why = f"over {timeout:.0f} s (stopped)"
+        if why:
+            proc.kill()
+            break
+        time.sleep(0.2)
+    stdout, stderr = proc.communicate()
+    return why, peak, stdout, stderr
+
+
+def memory_table(horizons, adjoints, timeout: float, cap_mb: float | None = None) -> list[dict]:
+    """Peak RSS and gradient time per (adjoint, horizon), each in a fresh child process.
+
+    A child is stopped past ``timeout`` seconds or ``cap_mb`` resident megabytes, and a
+    horizon whose time, scaled linearly from the previous one, would exceed ``timeout`` is
+    not started; either ends that adjoint's row with the reason.
+    """
+    cap_mb = _memory_cap_mb() if cap_mb is None else cap_mb
     rows = []
     for adjoint in adjoints:
+        previous = None
         for horizon in horizons:
+            if previous is not None:
+                estimate = (previous["gradient_s"] + previous["compile_s"]) * horizon / previous["horizon"]
+                if estimate > timeout:
+                    rows.append({"adjoint": adjoint, "horizon": horizon, "error": (
+                        f"not run: ~{estimate:.0f} s scaled from {previous['horizon']} steps, "
+                        f"over the {timeout:.0f} s limit")})
+                    break
             cmd = [sys.executable, "-m", "softbody.bench.gradients", adjoint, str(horizon)]
-            try:
-                out = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
-            except subprocess.TimeoutExpired:
-                rows.append({"adjoint": adjoint, "horizon": horizon, "error": f"over {timeout:.0f} s"})
-                break
-            lines = [line for line in out.stdout.splitlines() if line.startswith("{")]
-            if out.returncode != 0 or not lines:
-                why = (out.stderr.strip().splitlines() or ["failed"])[-1]
-                rows.append({"adjoint": adjoint, "horizon": horizon, "error": why[:200]})
+            why, peak, stdout, stderr = _watch(cmd, timeout, cap_mb)
+            lines = [line for line in stdout.splitlines() if line.startswith("{")]
+            if why is None and not lines:
+                why = (stderr.strip().splitlines() or ["failed"])[-1][:200]
+            if why is not None:
+                rows.append({"adjoint": adjoint, "horizon": horizon, "error": why, "rss_mb_when_stopped": peak})
                 break  # longer horizons will not fare better
-            rows.append(json.loads(lines[-1]))
+            previous = json.loads(lines[-1])
+            rows.append(previous)
     return rows
 
 
 def run(out: Path, quick: bool) -> dict:
     repeats = 2 if quick else 3
+    horizons = [50, 100] if quick else [50, 100, 500, 1000, 5000]
+    rows = memory_table(horizons, ["implicit", "unrolled", "plain"], timeout=600 if quick else 1800)
     implicit = backward_cost("implicit", repeats)
     unrolled = backward_cost("unrolled", repeats)
     errors = fd_errors()
-    horizons = [50, 100] if quick else [50, 100, 500, 1000, 5000]
-    rows = memory_table(horizons, ["implicit", "unrolled", "plain"], timeout=600 if quick else 1800)
     rss_1000 = next((r["peak_rss_mb"] for r in rows if r.get("adjoint") == "implicit"
                      and r.get("horizon") == 1000 and "peak_rss_mb" in r), None)
     figures = {
@@ -163,6 +221,10 @@ def _plot(path: Path, rows: list[dict]) -> None:
             h = [r["horizon"] for r in ok]
             a.loglog(h, [r["peak_rss_mb"] for r in ok], "o-", label=label)
             b.loglog(h, [r["gradient_s"] for r in ok], "o-", label=label)
+        for r in rows:
+            if r.get("adjoint") == adjoint and "out of memory" in r.get("error", ""):
+                a.loglog([r["horizon"]], [r["rss_mb_when_stopped"]], "x", ms=10, color="k")
+                a.annotate(" out of memory", (r["horizon"], r["rss_mb_when_stopped"]), fontsize=8)
     a.set_xlabel("steps")
     a.set_ylabel("peak RSS of the process, MB")
     b.set_xlabel("steps")
