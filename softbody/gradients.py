@@ -22,11 +22,13 @@ Two modes, both exact for what they differentiate (set ``Options(adjoint=...)``)
   backward pass keeps the step's inputs and solution, not its rotations (the solution's
   are recomputed from positions). Contact scenes use the contact solver's own derivative.
 * :class:`Unrolled`: reverse mode through the iterations as they ran (a fixed-trip
-  ``scan`` that skips finished iterations), each step rematerialised (``jax.checkpoint``),
-  and the time loop split into segments of ~sqrt(n_steps) steps that are themselves
-  checkpointed, so a rollout's gradient holds O(sqrt(n_steps)) states, not
-  O(n_steps x iterations). It differentiates what was computed, converged or not, and
-  also supports forward mode (``jacfwd``).
+  ``scan`` that skips finished iterations), each step and each iteration rematerialised
+  (``jax.checkpoint``), and the time loop split into segments of ~sqrt(n_steps) steps
+  that are themselves checkpointed, so a rollout's gradient holds O(sqrt(n_steps))
+  states, not O(n_steps x iterations), plus one loop state per trip of the step being
+  differentiated (``Options.max_iter`` trips: keep it near what a step needs). It
+  differentiates what was computed, converged or not, and also supports forward mode
+  (``jacfwd``).
 
 :func:`check_grad` compares reverse-mode directional derivatives with (extrapolated)
 central finite differences.
@@ -63,8 +65,9 @@ class Unrolled(Adjoint):
     Attributes:
         segment_checkpoints: checkpoint segments of ~sqrt(n_steps) steps (memory
             O(sqrt(n_steps)) states for ~one extra forward pass).
-        remat: rematerialise each step in the backward pass (``jax.checkpoint``), so the
-            tape holds no per-iteration values; ``False`` is plain autodiff (for comparison).
+        remat: rematerialise each step and each iteration in the backward pass
+            (``jax.checkpoint``), so the tape holds one loop state per iteration of the
+            step being differentiated; ``False`` is plain autodiff (for comparison).
         extra_iterations: iterations run after each step has converged. They leave the
             converged positions (nearly) unchanged but let the derivative of the iterates
             converge too, which lags behind the iterates: on the gradient tests' cantilever
@@ -77,10 +80,12 @@ class Unrolled(Adjoint):
 
     def solve(self, model, prep, state, activation, force, *, static):
         from softbody.objective import solve_step
+        from softbody.solvers import Unroll
+
+        unroll = Unroll(extra=self.extra_iterations, remat=self.remat)
 
         def run(prep, state, activation, force):
-            return solve_step(model, prep, state, activation, force, static=static,
-                              unrolled=1 + self.extra_iterations)
+            return solve_step(model, prep, state, activation, force, static=static, unrolled=unroll)
 
         if self.remat:
             run = jax.checkpoint(run, prevent_cse=False)

@@ -222,11 +222,12 @@ def step_gradient_vjp(model: Model, prep: Prepared, x_n, v_n, q_n, activation, f
 
 
 def solve_step(model: Model, prep: Prepared, state: State, activation, force, *, static: bool,
-               unrolled: bool | int = False) -> tuple[Solution, StepInfo]:
+               unrolled=False) -> tuple[Solution, StepInfo]:
     """Run the model's iteration method on one step (or a static solve).
 
-    ``unrolled=k`` runs a fixed-trip loop that reverse-mode autodiff differentiates as it
-    ran, with ``k - 1`` iterations after convergence (see :func:`softbody.solvers.iterate`);
+    ``unrolled=Unroll(extra=k)`` runs a fixed-trip loop that reverse-mode autodiff
+    differentiates as it ran, with ``k`` iterations after convergence (see
+    :func:`softbody.solvers.iterate` and :class:`softbody.solvers.Unroll`);
     ``False`` runs a ``while_loop`` (differentiate it with the implicit adjoint,
     :class:`softbody.gradients.Implicit`).
     """

@@ -40,7 +40,7 @@ def load_scene(tol: float = 1e-4, **option_overrides):
     muscle = Muscle(act, np.tile([1.0, 0.0, 0.0], (len(act), 1)), np.arange(len(act)),
                     tuple(f"m{i}" for i in range(len(act))), stiffness=1e5)
     frames = int(scene["frames"])
-    options = Options(dt=float(scene["dt"]), tol=tol, max_iter=2000, **option_overrides)
+    options = Options(**{"dt": float(scene["dt"]), "tol": tol, "max_iter": 2000, **option_overrides})
     model, params = build(mesh, Material(E=1e6, nu=0.45, density=1e3), fixed="fixed", options=options,
                           actuators=[muscle])
     state0 = initial_state(model, params, x=scene["q0"].reshape(-1, 3), v=scene["v0"].reshape(-1, 3))
