@@ -130,6 +130,10 @@ def _check_controls(model: Model, controls, forces, n_steps):
         n_steps = forces.shape[0] if n_steps is None else n_steps
         if forces.shape[0] != n_steps:
             raise SceneError(f"forces have {forces.shape[0]} rows but n_steps = {n_steps}")
+    for name, value in (("controls", controls), ("forces", forces)):
+        if value is not None and not isinstance(value, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(value))):
+            k = int(np.argmax(~np.isfinite(np.asarray(value)).reshape(value.shape[0], -1).all(axis=1)))
+            raise SceneError(f"{name} hold NaN or inf (first at step {k}); give finite values")
     if n_steps is None or int(n_steps) < 1:
         raise SceneError("give n_steps >= 1 (or controls/forces whose first axis is the number of steps)")
     return controls, forces, int(n_steps)
@@ -143,7 +147,9 @@ def _rollout(model: Model, params: Params, state0: State, controls, forces, n_st
         state, bad = carry
         a, f = inputs
         new, info = step(model, prep, state, _activation(model, a), f)
-        finite = jnp.all(jnp.isfinite(new.x)) & jnp.all(jnp.isfinite(new.v))
+        # A non-finite residual is a step that could not start (an overflowing load, say):
+        # the positions it returns are finite but not a solution.
+        finite = jnp.all(jnp.isfinite(new.x)) & jnp.all(jnp.isfinite(new.v)) & jnp.isfinite(info.residual)
         new = jax.tree.map(lambda n, o: jnp.where(bad, o, n), new, state)
         return (new, bad | ~finite), (new.x, new.v, info, bad | ~finite)
 
@@ -185,8 +191,8 @@ def rollout(model: Model, params: Params, state0: State, controls=None, forces=N
         ``state0``) and per-step statistics.
 
     Raises:
-        SceneError: bad control or force shapes (before compiling).
-        SimulationError: the state became non-finite, or a step ended with more inverted
+        SceneError: bad control or force shapes, or NaN/inf in them (before compiling).
+        SimulationError: the state or a step's residual became non-finite, or a step ended with more inverted
             tets (``det F <= 0``) than ``state0`` had; names the first bad step, the
             quantity and the activations there. Under an outer ``jit``/``grad`` the check
             cannot raise a Python error; it becomes an ``equinox.error_if`` runtime error
@@ -204,7 +210,8 @@ def rollout(model: Model, params: Params, state0: State, controls=None, forces=N
     if bad.any():
         k = int(np.argmax(bad))
         xs, vs = np.asarray(traj.x[k + 1]), np.asarray(traj.v[k + 1])
-        what = "positions" if not np.isfinite(xs).all() else "velocities"
+        what = ("positions" if not np.isfinite(xs).all() else
+                "velocities" if not np.isfinite(vs).all() else "the force residual")
         res = float(traj.info.residual[k])
         raise SimulationError(
             f"step {k}: {what} became non-finite (step residual {res:.3g}, "

@@ -519,3 +519,28 @@ def test_reference_argument_errors(no_compiling):
         reference.diffrax_rollout(model, params, state, 0.1, [0.05, 0.02])
     with pytest.raises(ValueError, match="inside"):
         reference.diffrax_rollout(model, params, state, 0.1, [0.2])
+
+
+def test_a_step_that_turns_non_finite_raises_naming_the_step():
+    """A finite but absurd load (1e300 N) overflows step 1: its objective is NaN, so the
+    solver stops at once and returns the unchanged, finite guess. The rollout must name
+    the step instead of passing that off as a solution (it once ignored the load)."""
+    model, params = build(BEAM, fixed="fixed")
+    state = initial_state(model, params)
+    forces = np.zeros((3, model.n_vertices, 3))
+    forces[1, :, 2] = 1e300
+    with pytest.raises(simulate.SimulationError, match=r"step 1: the force residual became non-finite"):
+        rollout(model, params, state, forces=forces)
+
+
+def test_non_finite_controls_or_forces_are_refused_before_compiling(no_compiling):
+    model, params = build(BEAM, RUBBER, fixed="fixed", actuators=[MUSCLE])
+    state = initial_state(model, params)
+    forces = np.zeros((3, model.n_vertices, 3))
+    forces[2, 0, 1] = np.inf
+    with pytest.raises(SceneError, match=r"forces hold NaN or inf \(first at step 2\)"):
+        rollout(model, params, state, forces=forces)
+    controls = np.zeros((3, 1))
+    controls[0, 0] = np.nan
+    with pytest.raises(SceneError, match=r"controls hold NaN or inf \(first at step 0\)"):
+        rollout(model, params, state, controls=controls)

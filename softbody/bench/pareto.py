@@ -70,8 +70,6 @@ class Cantilever:
 
     def mesh(self, k: int):
         """The ``grid_box`` mesh with ``(5k, k, k)`` cells (regions ``fixed`` and ``tip``)."""
-        from softbody.meshing.grid import grid_box
-
         return _mesh(self.length, self.width, k)
 
     def build(self, k: int, dt: float = 0.01, tol: float = 1e-6, method=None, max_iter: int = 2000,
