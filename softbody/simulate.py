@@ -131,9 +131,11 @@ def _check_controls(model: Model, controls, forces, n_steps):
         if forces.shape[0] != n_steps:
             raise SceneError(f"forces have {forces.shape[0]} rows but n_steps = {n_steps}")
     for name, value in (("controls", controls), ("forces", forces)):
-        if value is not None and not isinstance(value, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(value))):
-            k = int(np.argmax(~np.isfinite(np.asarray(value)).reshape(value.shape[0], -1).all(axis=1)))
-            raise SceneError(f"{name} hold NaN or inf (first at step {k}); give finite values")
+        if value is None or isinstance(value, jax.core.Tracer):
+            continue  # traced: the in-loop check names the step instead
+        bad_rows = ~np.isfinite(np.asarray(value)).reshape(value.shape[0], -1).all(axis=1)
+        if bad_rows.any():  # numpy, not jnp: under an outer jit a jnp test of a constant is traced
+            raise SceneError(f"{name} hold NaN or inf (first at step {int(np.argmax(bad_rows))}); give finite values")
     if n_steps is None or int(n_steps) < 1:
         raise SceneError("give n_steps >= 1 (or controls/forces whose first axis is the number of steps)")
     return controls, forces, int(n_steps)

@@ -544,3 +544,16 @@ def test_non_finite_controls_or_forces_are_refused_before_compiling(no_compiling
     controls[0, 0] = np.nan
     with pytest.raises(SceneError, match=r"controls hold NaN or inf \(first at step 0\)"):
         rollout(model, params, state, controls=controls)
+
+
+def test_constant_forces_closed_over_by_a_jitted_loss_pass_the_input_check(muscle_beam):
+    """The finiteness check of controls and forces must not trace: a jitted loss that
+    closes over concrete forces (the usual way to write one) once failed to compile."""
+    model, params, state = muscle_beam
+    forces = jnp.zeros((2, model.n_vertices, 3))
+
+    @jax.jit
+    def tip_height(controls):
+        return rollout(model, params, state, controls=controls, forces=forces).x[-1, :, 2].mean()
+
+    assert np.isfinite(float(tip_height(jnp.full((2, 1), 0.3))))
