@@ -253,9 +253,9 @@ def _plot(path: Path, rows: list[dict]) -> None:
             a.loglog(h, [r["peak_rss_mb"] for r in ok], "o-", label=label)
             b.loglog(h, [r["gradient_s"] for r in ok], "o-", label=label)
         for r in rows:
-            if r.get("adjoint") == adjoint and "out of memory" in r.get("error", ""):
+            if r.get("adjoint") == adjoint and "out of memory" in r.get("error", "").lower():
                 a.loglog([r["horizon"]], [r["rss_mb_when_stopped"]], "x", ms=10, color="k")
-                a.annotate(" out of memory", (r["horizon"], r["rss_mb_when_stopped"]), fontsize=8)
+                a.annotate(f" {label}: out of memory", (r["horizon"], r["rss_mb_when_stopped"]), fontsize=8)
     a.set_xlabel("steps")
     a.set_ylabel("peak RSS of the process, MB")
     b.set_xlabel("steps")
