@@ -208,9 +208,17 @@ def rollout(model: Model, params: Params, state0: State, controls=None, forces=N
         xs = eqx.error_if(xs, jnp.any(new_inversions),
                           f"softbody: the simulation inverted tets. {_FIXES}.")
         return Trajectory(x=xs, v=traj.v, info=traj.info)
-    bad = np.asarray(bad)
-    if bad.any():
-        k = int(np.argmax(bad))
+    bad, new_inversions = np.asarray(bad), np.asarray(new_inversions)
+    first_bad = int(np.argmax(bad)) if bad.any() else None
+    first_inverted = int(np.argmax(new_inversions)) if new_inversions.any() else None
+    # Inverted tets usually come first and make the objective NaN: name the cause.
+    if first_inverted is not None and (first_bad is None or first_inverted <= first_bad):
+        k = first_inverted
+        raise SimulationError(
+            f"step {k}: {int(traj.info.inverted[k])} tets inverted (det F <= 0; the initial "
+            f"state had {int(inverted0)}) under {_describe(model, _row(controls, k))}. {_FIXES}.")
+    if first_bad is not None:
+        k = first_bad
         xs, vs = np.asarray(traj.x[k + 1]), np.asarray(traj.v[k + 1])
         what = ("positions" if not np.isfinite(xs).all() else
                 "velocities" if not np.isfinite(vs).all() else "the force residual")
@@ -219,12 +227,6 @@ def rollout(model: Model, params: Params, state0: State, controls=None, forces=N
             f"step {k}: {what} became non-finite (step residual {res:.3g}, "
             f"{int(traj.info.iterations[k])} iterations; {_describe(model, _row(controls, k))}). "
             f"Reduce dt, check loads and activations, or raise max_iter. {_FIXES}.")
-    new_inversions = np.asarray(new_inversions)
-    if new_inversions.any():
-        k = int(np.argmax(new_inversions))
-        raise SimulationError(
-            f"step {k}: {int(traj.info.inverted[k])} tets inverted (det F <= 0; the initial "
-            f"state had {int(inverted0)}) under {_describe(model, _row(controls, k))}. {_FIXES}.")
     return traj
 
 
