@@ -85,6 +85,7 @@ def fd_errors(frames: int = 5, eps: float = 1e-3) -> dict:
     is ``|g_kind|``) against Richardson-extrapolated central differences at ``eps`` and
     ``eps / 2`` (forward tolerance 1e-10, first ``frames`` frames).
     """
+    from softbody.gradients import central_difference
     from softbody.model import State
     from softbody.simulate import rollout
 
@@ -110,13 +111,7 @@ def fd_errors(frames: int = 5, eps: float = 1e-3) -> dict:
     for kind in theta:
         norm = float(jnp.sqrt(jnp.sum(grad[kind] ** 2)))
         direction = {j: (grad[j] / norm if j == kind else jnp.zeros_like(theta[j])) for j in theta}
-
-        def central(h):
-            plus = jax.tree.map(lambda a, d: a + h * d, theta, direction)
-            minus = jax.tree.map(lambda a, d: a - h * d, theta, direction)
-            return (float(forward(plus)) - float(forward(minus))) / (2 * h)
-
-        fd = (4 * central(eps / 2) - central(eps)) / 3  # Richardson: truncation O(eps^4)
+        fd = central_difference(forward, theta, direction, eps)
         errors[kind] = abs(norm - fd) / abs(fd)
     return errors
 
@@ -205,13 +200,13 @@ def memory_table(horizons, adjoints, timeout: float, cap_mb: float | None = None
             lines = [line for line in stdout.splitlines() if line.startswith("{")]
             if why is None and not lines:
                 why = (stderr.strip().splitlines() or ["failed"])[-1][:200]
+            row = ({"adjoint": adjoint, "horizon": horizon, "error": why, "rss_mb_when_stopped": peak}
+                   if why is not None else json.loads(lines[-1]))
+            rows.append(row)
+            print(json.dumps(row), file=sys.stderr, flush=True)  # progress of a long table
             if why is not None:
-                rows.append({"adjoint": adjoint, "horizon": horizon, "error": why, "rss_mb_when_stopped": peak})
-                print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
                 break  # longer horizons will not fare better
-            previous = json.loads(lines[-1])
-            rows.append(previous)
-            print(json.dumps(previous), file=sys.stderr, flush=True)  # progress of a long table
+            previous = row
     return rows
 
 
