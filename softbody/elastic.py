@@ -7,6 +7,8 @@ vertex 0 and ``Dm^-1[k]`` for vertex ``k + 1``), so that ``F_e = sum_a x_a g_a^T
 
 from __future__ import annotations
 
+from typing import Callable
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -89,6 +91,45 @@ def scatter_stress(model, dminv: Array, stress: Array) -> Array:
     incidence = jnp.asarray(model.corner_incidence.T)  # (K, n)
     gathered = [corner[i][incidence] for i in range(3)]  # (K, n) each
     return jnp.stack([sum(g[k] for k in range(len(incidence))) for g in gathered], axis=1)
+
+
+#: ``(a, b)``, ``a <= b``, of a symmetric ``9 x 9`` matrix's packed upper triangle, row by row.
+_UPPER = [(a, b) for a in range(9) for b in range(a, 9)]
+
+
+def stress_derivative_product(model, dminv: Array, dpdf: Array) -> Callable[[Array], Array]:
+    """The linear map ``v -> sum_e G_e^T (dP/dF)_e (G_e v)``: ``(n, 3) -> (n, 3)``.
+
+    It is the Hessian-vector product of ``sum_e Psi_e(F_e)`` given each tet's stress
+    derivative, i.e. :func:`scatter_stress` of ``dP/dF`` applied to
+    :func:`deformation_gradient` of ``v``. With the native library (float64) the product
+    runs as one compiled C++ loop over tets (:func:`softbody.native.tet_hessian_product`),
+    ~4x faster than the XLA loops used otherwise; ``dP/dF``, the second derivative of an
+    energy, is symmetric, and is stored symmetrised (45 entries a tet).
+
+    Arguments:
+        dminv: ``(3, 3, t)`` inverse rest edge matrices.
+        dpdf: ``(9, 3, 3, t)`` ``dP_ij / dF_kl`` indexed ``[3 k + l, i, j, e]``.
+
+    Returns:
+        A function of ``v`` ``(n, 3)`` returning ``(n, 3)``.
+    """
+    from softbody import native
+
+    t = dpdf.shape[-1]
+    if dpdf.dtype == jnp.float64 and native.available():
+        m = dpdf.reshape(9, 9, t)
+        packed = jnp.stack([m[a, a] if a == b else 0.5 * (m[a, b] + m[b, a]) for a, b in _UPPER], axis=1)
+        rows = dminv.reshape(9, t).T  # (t, 9): Dm^-1[k, j] at 3 k + j
+        tets = np.asarray(model.mesh.tets, np.int32)
+        return lambda v: native.tet_hessian_product(packed, rows, tets, v)
+
+    def product(v):
+        df = deformation_gradient(model, dminv, v).reshape(9, -1)
+        dp = jnp.stack([sum(dpdf[k, i, j] * df[k] for k in range(9)) for i in range(3) for j in range(3)])
+        return scatter_stress(model, dminv, dp.reshape(3, 3, -1))
+
+    return product
 
 
 #: Newton steps of :func:`volume_shift`: from its upper-bound start they reach round-off

@@ -13,7 +13,8 @@ import jax
 import jax.numpy as jnp
 
 from softbody import rotation as rot
-from softbody.elastic import corotated, deformation_gradient, scatter_stress, strain_rate_damping
+from softbody.elastic import (corotated, deformation_gradient, scatter_stress, strain_rate_damping,
+                              stress_derivative_product)
 from softbody.solvers import Solution, StepProblem
 
 if TYPE_CHECKING:
@@ -142,8 +143,9 @@ def step_hessian(model: Model, prep: Prepared, x_n, v_n, q_n, activation, force,
     rows and columns; zero on fixed vertices), built for repeated application: the
     per-tet stress derivative ``dP/dF`` ``(3, 3, 3, 3, t)`` is assembled once (nine
     tangents of the per-tet terms, through the rotation's exact derivative), so each
-    product is a gather, a ``9 x 9`` product per tet and a gather-sum, about a local step's
-    memory traffic with none of its rotation or volume iterations. Terms of positions
+    product is a gather, a ``9 x 9`` product per tet and a scatter
+    (:func:`~softbody.elastic.stress_derivative_product`, native where available), with
+    none of a local step's rotation or volume iterations. Terms of positions
     (cavities, joint servos) are linearised as they are.
 
     Arguments:
@@ -162,11 +164,11 @@ def step_hessian(model: Model, prep: Prepared, x_n, v_n, q_n, activation, force,
     diagonal = 0.0 if static else prep.mass / h**2 + prep.mass_alpha / h
     vertex = jax.linearize(lambda x: terms.vertex(x)[1], x)[1] if _has_vertex_terms(model) else None
 
+    product = stress_derivative_product(model, prep.dminv, dpdf)
+
     def hvp(v):
         v = v * free
-        df = deformation_gradient(model, prep.dminv, v).reshape(9, -1)
-        dp = jnp.stack([sum(dpdf[k, i, j] * df[k] for k in range(9)) for i in range(3) for j in range(3)])
-        out = scatter_stress(model, prep.dminv, dp.reshape(3, 3, -1)) + diagonal * v
+        out = product(v) + diagonal * v
         if vertex is not None:
             out = out + vertex(v)
         return out * free

@@ -186,3 +186,35 @@ def test_gradient_finite_through_inverted_tets(adjoint):
     for leaf in jax.tree.leaves(g):
         assert np.all(np.isfinite(np.asarray(leaf)))
     assert float(jnp.abs(g.E).max()) > 0
+
+
+@pytest.mark.parametrize("use_native", [True, False], ids=["native", "xla"])
+def test_stress_derivative_product_is_the_hessian_vector_product(monkeypatch, use_native):
+    """``stress_derivative_product`` against autodiff of ``1/2 sum_e D_e : K_e D_e``,
+    ``D_e`` the deformation gradient of ``x`` and ``K_e`` random symmetric, on the gmsh
+    mesh; under ``vmap`` too (the native call runs batch members one by one)."""
+    from softbody import native
+    from softbody.elastic import deformation_gradient, rest_geometry, stress_derivative_product
+
+    if use_native:
+        assert native.available(), native.unavailable_reason()
+    else:
+        monkeypatch.setattr(native, "available", lambda: False)
+    mesh = _mesh()
+    model, _ = build(mesh, Material(E=1e5, nu=0.3, density=1000), fixed="fixed")
+    dminv, _ = rest_geometry(model, jnp.zeros_like(jnp.asarray(mesh.points)))
+    rng = np.random.default_rng(1)
+    k = rng.standard_normal((9, 9, mesh.n_tets))
+    k = jnp.asarray(k + k.transpose(1, 0, 2))  # [kl, ij, e]
+
+    def energy(x):
+        d = deformation_gradient(model, dminv, x).reshape(9, -1)
+        return 0.5 * jnp.einsum("ae,abe,be->", d, k, d)
+
+    x = jnp.asarray(rng.standard_normal((mesh.n_vertices, 3)))
+    v = jnp.asarray(rng.standard_normal((2, mesh.n_vertices, 3)))
+    expected = jnp.stack([jax.jvp(jax.grad(energy), (x,), (vi,))[1] for vi in v])
+    product = jax.jit(jax.vmap(stress_derivative_product(model, dminv, k.reshape(9, 3, 3, -1))))
+    text = jax.jit(stress_derivative_product(model, dminv, k.reshape(9, 3, 3, -1))).lower(v[0]).as_text()
+    assert ("softbody_tet_hessian_product" in text) == use_native
+    np.testing.assert_allclose(product(v), expected, rtol=0, atol=1e-12 * float(jnp.abs(expected).max()))
