@@ -6,8 +6,10 @@
 // dP = K D with K the symmetric 9 x 9 dP/dF stored as its 45 upper-triangle entries
 // (row-major), and corner forces dP g_a added to the tet's four vertices
 // (g_0 = -sum_k Dm^-1[k, :], g_{k+1} = Dm^-1[k, :]). Arrays are tet-major so that each
-// tet's 45 + 9 values are contiguous: this runs ~4x faster than the same product as
-// fused XLA loops over structure-of-arrays data, whose 45 strided streams miss the cache.
+// tet's 45 + 9 values are contiguous (a first version reading dP/dF as
+// structure-of-arrays, 45 strided streams, ran 2.3x slower). On the shared cantilever
+// (12288 tets) a call takes 0.39 ms against 0.62 ms for the same product as fused XLA
+// loops, on an idle machine.
 
 #include <cstdint>
 #include <cstring>
