@@ -144,7 +144,8 @@ def tet_hessian_product(k, dminv, tets, v):
         k: ``(t, 45)`` float64, each tet's symmetric ``9 x 9`` ``dP/dF`` as its packed
             upper triangle, row by row (entries ``(0, 0), (0, 1), ..., (0, 8), (1, 1), ...``).
         dminv: ``(t, 9)`` float64, each tet's ``Dm^-1`` row-major.
-        tets: ``(t, 4)`` int32 vertex indices.
+        tets: ``(t, 4)`` vertex indices, a numpy array (the mesh's, static): checked here,
+            once, so that the compiled loop need not check them on every call.
         v: ``(n, 3)`` float64.
 
     Returns:
@@ -152,10 +153,15 @@ def tet_hessian_product(k, dminv, tets, v):
 
     Raises:
         RuntimeError: if the native library is unavailable (check :func:`available`).
+        ValueError: if ``tets`` is not a ``(t, 4)`` array of indices into ``v``'s rows.
     """
     import jax
 
     if library() is None:
         raise RuntimeError(f"the native library is unavailable: {unavailable_reason()}")
+    tets = np.asarray(tets)
+    if tets.ndim != 2 or tets.shape[1] != 4 or (tets.size and (tets.min() < 0 or tets.max() >= v.shape[0])):
+        raise ValueError(f"tet_hessian_product: tets must be (t, 4) indices in [0, {v.shape[0]}), "
+                         f"got shape {tets.shape}")
     return jax.ffi.ffi_call(HESSIAN_TARGET, jax.ShapeDtypeStruct(v.shape, v.dtype), vmap_method="sequential")(
-        k, dminv, tets, v)
+        k, dminv, tets.astype(np.int32), v)
