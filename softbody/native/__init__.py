@@ -6,9 +6,8 @@ callback (``jax.pure_callback``) costs about 1-2 ms per call inside a compiled l
 also does heavy XLA work (measured on the shared DiffPD cantilever: 3.5 ms against 1.4 ms
 per local-global iteration with a JAX-native stand-in); a native call does not enter Python.
 ``tet_hessian.cc`` holds the per-tet Hessian-vector product of the implicit adjoint
-(``softbody_tet_hessian_product``, :func:`tet_hessian_product`): on the shared cantilever
-0.39 ms a call against 0.62 ms for the same product as XLA loops on an idle machine
-(0.66 against 1.52 ms with another job on the second core).
+(``softbody_tet_hessian_product``, :func:`tet_hessian_operator`): on the shared cantilever
+0.25-0.29 ms a call against 0.62 ms for the same product as XLA loops on an idle machine.
 
 The library is built with the system C++ compiler (``$CXX`` or ``c++``) against the XLA
 FFI headers shipped with jaxlib, once per set of sources and jaxlib version, into
@@ -131,37 +130,59 @@ def available() -> bool:
     return library() is not None
 
 
-def tet_hessian_product(k, dminv, tets, v):
-    """``sum_e G_e^T K_e (G_e v)``: a per-tet stress derivative applied to displacements.
+#: Tets per block of the native Hessian product (``tet_hessian.cc``'s ``kLanes``).
+LANES = 4
+
+
+def tet_hessian_operator(k, dminv, tets):
+    """The map ``v -> sum_e G_e^T K_e (G_e v)``: a per-tet stress derivative applied to displacements.
 
     ``G_e v`` is tet ``e``'s deformation-gradient increment ``Ds(v) Dm^-1`` (row-major 9
     values) and ``G_e^T`` spreads a stress ``dP`` to the tet's corners as
-    :func:`softbody.elastic.scatter_stress` does. Runs natively inside compiled code (no
-    host callback); batched (``vmap``) calls run one member after another. Not
-    differentiable: it serves the implicit adjoint's linear solve.
+    :func:`softbody.elastic.scatter_stress` does. The arrays are padded and blocked for
+    the native kernel here, once; each call of the returned map then runs natively inside
+    compiled code (no host callback). Batched (``vmap``) calls run one member after
+    another. Not differentiable: it serves the implicit adjoint's linear solve.
 
     Arguments:
-        k: ``(t, 45)`` float64, each tet's symmetric ``9 x 9`` ``dP/dF`` as its packed
+        k: ``(45, t)`` float64, each tet's symmetric ``9 x 9`` ``dP/dF`` as its packed
             upper triangle, row by row (entries ``(0, 0), (0, 1), ..., (0, 8), (1, 1), ...``).
-        dminv: ``(t, 9)`` float64, each tet's ``Dm^-1`` row-major.
-        tets: ``(t, 4)`` vertex indices, a numpy array (the mesh's, static): checked here,
-            once, so that the compiled loop need not check them on every call.
-        v: ``(n, 3)`` float64.
+        dminv: ``(9, t)`` float64, each tet's ``Dm^-1`` row-major.
+        tets: ``(t, 4)`` vertex indices, a numpy array (the mesh's, static): checked when
+            the map is first applied, so that the compiled loop need not check them.
 
     Returns:
-        ``(n, 3)`` float64.
+        A function of ``v`` ``(n, 3)`` float64 returning ``(n, 3)`` float64.
 
     Raises:
         RuntimeError: if the native library is unavailable (check :func:`available`).
-        ValueError: if ``tets`` is not a ``(t, 4)`` array of indices into ``v``'s rows.
+        ValueError: if ``k`` or ``dminv`` do not match ``tets``; when applied, if ``tets``
+            is not a ``(t, 4)`` array of indices into ``v``'s rows.
     """
     import jax
+    import jax.numpy as jnp
 
     if library() is None:
         raise RuntimeError(f"the native library is unavailable: {unavailable_reason()}")
     tets = np.asarray(tets)
-    if tets.ndim != 2 or tets.shape[1] != 4 or (tets.size and (tets.min() < 0 or tets.max() >= v.shape[0])):
-        raise ValueError(f"tet_hessian_product: tets must be (t, 4) indices in [0, {v.shape[0]}), "
-                         f"got shape {tets.shape}")
-    return jax.ffi.ffi_call(HESSIAN_TARGET, jax.ShapeDtypeStruct(v.shape, v.dtype), vmap_method="sequential")(
-        k, dminv, tets.astype(np.int32), v)
+    t = tets.shape[0] if tets.ndim == 2 else -1
+    if k.shape != (45, t) or dminv.shape != (9, t):
+        raise ValueError(f"tet_hessian_operator: expected k (45, t), dminv (9, t) for tets (t, 4), "
+                         f"got {k.shape}, {dminv.shape}, {tets.shape}")
+    pad = -t % LANES
+
+    def blocked(a):  # (c, t) -> (t / LANES, c, LANES), padding tets zero
+        a = jnp.pad(a.astype(jnp.float64), ((0, 0), (0, pad)))
+        return a.reshape(a.shape[0], -1, LANES).transpose(1, 0, 2)
+
+    k_blocks, dminv_blocks = blocked(k), blocked(dminv)
+    tets_padded = np.concatenate([tets, np.zeros((pad, 4), tets.dtype)]).astype(np.int32)
+
+    def apply(v):
+        if tets.shape[1] != 4 or (tets.size and (tets.min() < 0 or tets.max() >= v.shape[0])):
+            raise ValueError(f"tet_hessian_operator: tets must be (t, 4) indices in [0, {v.shape[0]}), "
+                             f"got shape {tets.shape}")
+        return jax.ffi.ffi_call(HESSIAN_TARGET, jax.ShapeDtypeStruct(v.shape, v.dtype), vmap_method="sequential")(
+            k_blocks, dminv_blocks, tets_padded, v)
+
+    return apply
