@@ -218,3 +218,19 @@ def test_stress_derivative_product_is_the_hessian_vector_product(monkeypatch, us
     text = jax.jit(stress_derivative_product(model, dminv, k.reshape(9, 3, 3, -1))).lower(v[0]).as_text()
     assert ("softbody_tet_hessian_product" in text) == use_native
     np.testing.assert_allclose(product(v), expected, rtol=0, atol=1e-12 * float(jnp.abs(expected).max()))
+
+
+def test_tet_hessian_operator_names_bad_shapes_and_indices():
+    """The native product refuses operands that do not match the mesh, and vertex indices
+    outside ``v``, with the expected shapes in the message (the kernel does not check)."""
+    from softbody import native
+
+    assert native.available(), native.unavailable_reason()
+    tets = np.array([[0, 1, 2, 3], [1, 2, 3, 4]])
+    k, dminv = jnp.zeros((45, 2)), jnp.zeros((9, 2))
+    with pytest.raises(ValueError, match=r"expected k \(45, t\), dminv \(9, t\)"):
+        native.tet_hessian_operator(k[:, :1], dminv, tets)
+    apply = native.tet_hessian_operator(k, dminv, tets)
+    with pytest.raises(ValueError, match=r"indices in \[0, 4\)"):
+        apply(jnp.zeros((4, 3)))
+    assert apply(jnp.ones((5, 3))).shape == (5, 3)
