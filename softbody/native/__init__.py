@@ -7,7 +7,8 @@ also does heavy XLA work (measured on the shared DiffPD cantilever: 3.5 ms again
 per local-global iteration with a JAX-native stand-in); a native call does not enter Python.
 ``tet_hessian.cc`` holds the per-tet Hessian-vector product of the implicit adjoint
 (``softbody_tet_hessian_product``, :func:`tet_hessian_operator`): on the shared cantilever
-0.25-0.29 ms a call against 0.62 ms for the same product as XLA loops on an idle machine.
+0.35 ms a jitted call against 0.77 ms for the same product as XLA loops (same process, idle
+machine, dispatch included).
 
 The library is built with the system C++ compiler (``$CXX`` or ``c++``) against the XLA
 FFI headers shipped with jaxlib, once per set of sources and jaxlib version, into
