@@ -149,16 +149,17 @@ def tet_hessian_operator(k, dminv, tets):
         k: ``(45, t)`` float64, each tet's symmetric ``9 x 9`` ``dP/dF`` as its packed
             upper triangle, row by row (entries ``(0, 0), (0, 1), ..., (0, 8), (1, 1), ...``).
         dminv: ``(9, t)`` float64, each tet's ``Dm^-1`` row-major.
-        tets: ``(t, 4)`` vertex indices, a numpy array (the mesh's, static): checked when
-            the map is first applied, so that the compiled loop need not check them.
+        tets: ``(t, 4)`` vertex indices, a numpy array (the mesh's, static): their range is
+            found here and checked against ``v`` when the map is traced, so that the
+            compiled loop need not check them.
 
     Returns:
         A function of ``v`` ``(n, 3)`` float64 returning ``(n, 3)`` float64.
 
     Raises:
         RuntimeError: if the native library is unavailable (check :func:`available`).
-        ValueError: if ``k`` or ``dminv`` do not match ``tets``; when applied, if ``tets``
-            is not a ``(t, 4)`` array of indices into ``v``'s rows.
+        ValueError: if ``tets`` is not ``(t, 4)`` or ``k`` or ``dminv`` do not match it;
+            when applied, if an index in ``tets`` is not a row of ``v``.
     """
     import jax
     import jax.numpy as jnp
@@ -166,10 +167,11 @@ def tet_hessian_operator(k, dminv, tets):
     if library() is None:
         raise RuntimeError(f"the native library is unavailable: {unavailable_reason()}")
     tets = np.asarray(tets)
-    t = tets.shape[0] if tets.ndim == 2 else -1
+    t = tets.shape[0] if tets.ndim == 2 and tets.shape[1] == 4 else -1
     if k.shape != (45, t) or dminv.shape != (9, t):
         raise ValueError(f"tet_hessian_operator: expected k (45, t), dminv (9, t) for tets (t, 4), "
                          f"got {k.shape}, {dminv.shape}, {tets.shape}")
+    lowest, highest = (int(tets.min()), int(tets.max())) if t else (0, -1)
     pad = -t % LANES
 
     def blocked(a):  # (c, t) -> (t / LANES, c, LANES), padding tets zero
@@ -180,9 +182,9 @@ def tet_hessian_operator(k, dminv, tets):
     tets_padded = np.concatenate([tets, np.zeros((pad, 4), tets.dtype)]).astype(np.int32)
 
     def apply(v):
-        if tets.shape[1] != 4 or (tets.size and (tets.min() < 0 or tets.max() >= v.shape[0])):
+        if lowest < 0 or highest >= v.shape[0]:
             raise ValueError(f"tet_hessian_operator: tets must be (t, 4) indices in [0, {v.shape[0]}), "
-                             f"got shape {tets.shape}")
+                             f"got {lowest} to {highest}")
         return jax.ffi.ffi_call(HESSIAN_TARGET, jax.ShapeDtypeStruct(v.shape, v.dtype), vmap_method="sequential")(
             k_blocks, dminv_blocks, tets_padded, v)
 
