@@ -29,6 +29,8 @@ import json
 import os
 import uuid
 import xml.etree.ElementTree as ET
+import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
@@ -165,6 +167,8 @@ def _region(name: str, reg: Any) -> Region:
         unknown = set(reg) - {"vertices", "tets", "faces"}
         if unknown:
             raise ResultError(f"region {name!r}: unknown keys {sorted(unknown)}; use vertices, tets, faces")
+        if "vertices" not in reg:
+            raise ResultError(f"region {name!r} has {sorted(reg)} but no vertices; give its vertex indices")
         return Region(**reg)
     return Region(np.asarray(reg))
 
@@ -400,23 +404,21 @@ class Result:
 
         Raises:
             FileNotFoundError: no file at ``path``.
-            ResultError: the file is not a softbody result, was written by a newer
-                version, lacks required entries (named in the message) or is inconsistent.
+            ResultError: the file is empty, is not an ``.npz`` archive, is truncated or
+                damaged, is not a softbody result, was written by a newer version, lacks
+                required entries or holds entries of the wrong kind (named in the message)
+                or is inconsistent.
         """
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"no result file at {path}; results are written by Result.save "
                                     "(or `softbody run ... -o result.npz`)")
-        try:
-            data = np.load(path, allow_pickle=False)
-        except (ValueError, OSError) as err:
-            raise ResultError(f"{path} is not an .npz result file: {err}") from None
-        with data:
-            keys = set(data.files)
-            if "format" not in keys or str(data["format"]) != FORMAT:
+        with _ResultArchive(path) as archive:
+            keys = archive.keys
+            if "format" not in keys or str(archive.array("format", numeric=False)) != FORMAT:
                 raise ResultError(f"{path} is not a softbody result file (no {FORMAT!r} format entry); "
                                   "results are written by Result.save")
-            version = int(data["version"]) if "version" in keys else 0
+            version = archive.number("version", integer=True) if "version" in keys else 0
             if version > FORMAT_VERSION:
                 raise ResultError(f"{path} has format version {version}, newer than this softbody reads "
                                   f"({FORMAT_VERSION}); upgrade softbody")
@@ -431,21 +433,18 @@ class Result:
             fields = {}
             for key in keys:
                 if key.startswith("field/"):
-                    fields[key[len("field/"):]] = data[key]
+                    fields[key[len("field/"):]] = archive.array(key)
                 elif key.startswith("region/"):
-                    name, part = key[len("region/"):].rsplit("/", 1)
-                    regions.setdefault(name, {})[part] = data[key]
+                    name, _, part = key[len("region/"):].rpartition("/")
+                    regions.setdefault(name, {})[part] = archive.array(key)
+            optional = {k: archive.array(k) if k in keys else None
+                        for k in ("activation", "loss_history", "skeleton")}
+            channel_names = archive.array("channel_names", numeric=False) if "channel_names" in keys else ()
             return cls(
-                points=data["points"], tets=data["tets"], surface=data["surface"], x=data["x"],
-                dt=float(data["dt"]),
-                activation=data["activation"] if "activation" in keys else None,
-                channel_names=[str(c) for c in data["channel_names"]] if "channel_names" in keys else (),
-                fields=fields,
-                loss_history=data["loss_history"] if "loss_history" in keys else None,
-                regions=regions,
-                obstacles=json.loads(str(data["obstacles"])),
-                skeleton=data["skeleton"] if "skeleton" in keys else None,
-                metadata=json.loads(str(data["metadata"])),
+                points=archive.array("points"), tets=archive.array("tets"),
+                surface=archive.array("surface"), x=archive.array("x"), dt=archive.number("dt"),
+                channel_names=[str(c) for c in channel_names], fields=fields, regions=regions,
+                obstacles=archive.json("obstacles"), metadata=archive.json("metadata"), **optional,
             )
 
     def __repr__(self) -> str:
@@ -453,6 +452,88 @@ class Result:
         return (f"Result({self.n_frames} frames x {self.n_vertices} vertices, dt={self.dt:g} s, "
                 f"{len(self.tets)} tets, fields={sorted(self.fields)}, regions={sorted(self.regions)}, "
                 f"{len(self.obstacles)} obstacles, with={extras})")
+
+
+#: The first bytes of a zip archive with entries, and of an empty one.
+_ZIP_MAGIC = (b"PK\x03\x04", b"PK\x05\x06")
+#: What reading a truncated or damaged zip archive raises, from its index or from an entry
+#: (damaged header flags read as an unsupported compression, NotImplementedError, or as a
+#: password-protected entry, RuntimeError; damaged names as bad UTF-8).
+_DAMAGED_ZIP = (zipfile.BadZipFile, EOFError, OSError, zlib.error, NotImplementedError, RuntimeError,
+                UnicodeDecodeError)
+
+
+def _damaged_result(path: Path, detail: str = "") -> ResultError:
+    return ResultError(f"{path} is not a complete softbody result file (truncated or damaged zip "
+                       f"archive{detail}): re-run the simulation to write it again")
+
+
+class _ResultArchive:
+    """An opened result ``.npz`` whose failures (damage, foreign entries) are :class:`ResultError`.
+
+    Arguments:
+        path: an existing file.
+
+    Raises:
+        ResultError: the file is empty, a single ``.npy`` array, not a zip archive, or a
+            zip archive whose index is truncated or damaged.
+    """
+
+    def __init__(self, path: Path):
+        self.path = path
+        with path.open("rb") as f:
+            head = f.read(6)
+        made_by = "results are written by Result.save (or `softbody run ... -o result.npz`)"
+        if not head:
+            raise ResultError(f"{path} is empty; {made_by}")
+        if head.startswith(b"\x93NUMPY"):
+            raise ResultError(f"{path} holds a single NumPy array (.npy), not an .npz result archive; {made_by}")
+        if not head.startswith(_ZIP_MAGIC):
+            raise ResultError(f"{path} is not a NumPy .npz archive (it does not start with a zip header); {made_by}")
+        try:
+            self.data = np.load(path, allow_pickle=False)
+        except _DAMAGED_ZIP:
+            raise _damaged_result(path) from None
+        self.keys = set(self.data.files)
+
+    def __enter__(self) -> _ResultArchive:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.data.close()
+
+    def array(self, key: str, numeric: bool = True) -> np.ndarray:
+        """The entry ``key``; ``numeric``: it must hold booleans, integers or floats."""
+        try:
+            value = self.data[key]
+        except _DAMAGED_ZIP:
+            raise _damaged_result(self.path, f": entry {key!r}") from None
+        except ValueError:  # Python objects (pickled) or a malformed array header
+            raise self._not_plain(key, numeric) from None
+        if numeric and value.dtype.kind not in "biuf":
+            raise self._not_plain(key, numeric)
+        return value
+
+    def _not_plain(self, key: str, numeric: bool) -> ResultError:
+        return ResultError(f"{self.path}: entry {key!r} is not a plain NumPy array of "
+                           f"{'numbers' if numeric else 'numbers or text'}; the file was not written by "
+                           "Result.save, or is damaged: write it again")
+
+    def number(self, key: str, integer: bool = False) -> float | int:
+        """The entry ``key`` as one float (or one integer)."""
+        value = self.array(key, numeric=False)
+        if value.shape != () or value.dtype.kind not in ("biu" if integer else "biuf"):
+            raise ResultError(f"{self.path}: entry {key!r} must be one {'integer' if integer else 'number'}, "
+                              f"got shape {value.shape} of {value.dtype}; the file was not written by Result.save")
+        return int(value) if integer else float(value)
+
+    def json(self, key: str) -> Any:
+        """The entry ``key`` decoded from JSON text."""
+        try:
+            return json.loads(str(self.array(key, numeric=False)))
+        except json.JSONDecodeError as err:
+            raise ResultError(f"{self.path}: entry {key!r} is not valid JSON ({err}); the file was not "
+                              "written by Result.save") from None
 
 
 def as_result(result: Result | str | os.PathLike) -> Result:

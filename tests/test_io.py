@@ -2,11 +2,13 @@
 
 import itertools
 import json
+import zipfile
 
 import meshio
 import numpy as np
 import pytest
 
+from softbody.cli import main
 from softbody.io import (
     Result,
     ResultError,
@@ -139,6 +141,96 @@ def test_load_errors(tmp_path):
         Result.load(tmp_path / "partial.npz")
     with pytest.raises(ValueError, match="end in .npz"):
         res.save(tmp_path / "result.h5")
+
+
+
+# --------------------------------------------------------------------------- damaged result files
+
+
+def saved_result_bytes(tmp_path) -> bytes:
+    """The bytes of a real result file written by :meth:`Result.save`."""
+    return box_result().save(tmp_path / "result.npz").read_bytes()
+
+
+def test_truncated_or_corrupted_result_is_named_as_damaged(tmp_path):
+    data = saved_result_bytes(tmp_path)
+    half = tmp_path / "half.npz"
+    half.write_bytes(data[: len(data) // 2])
+    with pytest.raises(ResultError, match=r"half\.npz is not a complete softbody result file "
+                                          r"\(truncated or damaged zip archive\): re-run the simulation"):
+        Result.load(half)
+    # The archive's index is intact but the bytes of the positions are overwritten: only
+    # reading that entry finds the damage (its checksum no longer matches).
+    with zipfile.ZipFile(tmp_path / "result.npz") as archive:
+        entry = archive.getinfo("x.npy")
+    assert entry.file_size > 1000
+    start = entry.header_offset + 30 + len(entry.filename) + len(entry.extra) + entry.file_size // 2
+    corrupt = bytearray(data)
+    corrupt[start:start + 64] = b"\xff" * 64
+    (tmp_path / "corrupt.npz").write_bytes(bytes(corrupt))
+    with pytest.raises(ResultError, match=r"corrupt\.npz is not a complete softbody result file "
+                                          r"\(truncated or damaged zip archive: entry 'x'\)"):
+        Result.load(tmp_path / "corrupt.npz")
+
+
+def test_files_that_are_not_npz_archives_are_named_without_suggesting_pickle(tmp_path):
+    text = tmp_path / "notes.npz"
+    text.write_text("dt = 0.01\nthese are notes, not a result\n")
+    with pytest.raises(ResultError, match=r"notes\.npz is not a NumPy \.npz archive") as err:
+        Result.load(text)
+    assert "pickle" not in str(err.value)
+    (tmp_path / "empty.npz").write_bytes(b"")
+    with pytest.raises(ResultError, match=r"empty\.npz is empty"):
+        Result.load(tmp_path / "empty.npz")
+    np.save(tmp_path / "array.npy", np.zeros(3))
+    (tmp_path / "array.npy").rename(tmp_path / "array.npz")
+    with pytest.raises(ResultError, match=r"array\.npz holds a single NumPy array \(\.npy\)"):
+        Result.load(tmp_path / "array.npz")
+
+
+def test_result_entries_of_the_wrong_kind_are_named(tmp_path):
+    """An .npz written by something else, with the format entry but entries of other kinds."""
+    with np.load(box_result(frames=2, with_extras=False).save(tmp_path / "full.npz")) as data:
+        full = {k: data[k] for k in data.files}
+    cases = {
+        "dt": (np.array([0.01, 0.02]), r"entry 'dt' must be one number, got shape \(2,\)"),
+        "version": (np.array("one"), r"entry 'version' must be one integer"),
+        "metadata": (np.array("{not json"), r"entry 'metadata' is not valid JSON"),
+        "points": (np.array([None, None, None], dtype=object),
+                   r"entry 'points' is not a plain NumPy array of numbers; the file was not written by Result.save"),
+    }
+    for key, (value, message) in cases.items():
+        path = tmp_path / f"bad_{key}.npz"
+        np.savez(path, **{**full, key: value})
+        with pytest.raises(ResultError, match=message) as err:
+            Result.load(path)
+        assert f"bad_{key}.npz" in str(err.value) and "pickle" not in str(err.value)
+    np.savez(tmp_path / "no_vertices.npz", **{k: v for k, v in full.items() if k != "region/fixed/vertices"})
+    with pytest.raises(ResultError, match=r"region 'fixed' has \['faces', 'tets'\] but no vertices"):
+        Result.load(tmp_path / "no_vertices.npz")
+
+
+def test_view_and_render_refuse_a_damaged_result_without_a_traceback(tmp_path, capsys, monkeypatch):
+    viewer = pytest.importorskip("softbody.viewer")
+    data = saved_result_bytes(tmp_path)
+    half = tmp_path / "half.npz"
+    half.write_bytes(data[: len(data) // 2])
+
+    def no_server(*args, **kwargs):
+        raise AssertionError("softbody view started a server for a damaged file")
+
+    monkeypatch.setattr(viewer.viser, "ViserServer", no_server)
+    assert main(["view", str(half), "--port", "0"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"softbody view: {half} is not a complete softbody result file "
+                          "(truncated or damaged zip archive)")
+    assert "Traceback" not in err
+
+    out = tmp_path / "frame.png"
+    assert main(["render", str(half), "-o", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"softbody render: {half} is not a complete softbody result file")
+    assert not out.exists()
 
 
 def test_validation_names_the_problem():
