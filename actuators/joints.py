@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from softbody._interfaces import VertexActuator
 from softbody.model import SceneError
 from softbody.skeleton import Prismatic, Revolute, Rig
 
@@ -66,7 +67,7 @@ def _check_rig(rig: Rig, model, what: str) -> None:
 
 
 @dataclass(frozen=True, eq=False)
-class JointTorque:
+class JointTorque(VertexActuator):
     """Torque (revolute, N m) or force (prismatic, N) on joints: one channel per joint.
 
     The activation of channel ``j`` is the torque held over the step; the energy is
@@ -133,7 +134,7 @@ class ServoParams(eqx.Module):
 
 
 @dataclass(frozen=True, eq=False)
-class JointServo:
+class JointServo(VertexActuator):
     """Position servos on joints: one channel per joint, the target angle (rad) or slide (m).
 
     The torque is ``clip(k (target - theta), -tau_max, tau_max)``, taken implicitly: the
@@ -171,6 +172,14 @@ class JointServo:
     @property
     def channel_names(self) -> tuple[str, ...]:
         return tuple(f"target:{name}" for name in self.joints)
+
+    def channel_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Revolute targets lie in ``[-pi, pi]`` (angles are read in ``(-pi, pi]``);
+        prismatic targets are unbounded."""
+        revolute = np.array([isinstance(self.rig.links[self.rig.link_index(j)].joint, Revolute)
+                             for j in self.joints])
+        bound = np.where(revolute, np.pi, np.inf)
+        return -bound, bound
 
     def init_params(self) -> ServoParams:
         """The gains and limits given to the term, as differentiable parameters."""

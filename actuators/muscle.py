@@ -10,7 +10,8 @@ fibre at its rest length, ``a = 0.3`` asks for 30 % contraction. The projection 
 the closest point of ``F m`` on the sphere of radius ``1 - a`` (exact, so PD's monotone
 convergence holds), and the term's PD matrix ``V k w (G m)(G m)^T`` does not depend on
 ``a``: activations change only the right-hand side, never the factorisation.
-Activations outside [0, 1] are clipped (their gradient is zero there).
+Each channel's range is [0, 1] (:meth:`Muscle.channel_bounds`): concrete controls outside it
+are refused; inside a traced computation they are clipped (zero gradient beyond).
 
 Design parameters (differentiable, in ``Params.actuators``): the stiffness ``k`` (one per
 muscle term) and the per-tet fibre weights ``w`` (``(m,)``, 1 by default, or the
@@ -29,6 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from softbody._interfaces import ElementActuator
 from softbody.elastic import shape_gradients
 
 Array = jax.Array
@@ -65,7 +67,7 @@ class MusclePrep(eqx.Module):
 
 
 @dataclass(frozen=True, eq=False)
-class Muscle:
+class Muscle(ElementActuator):
     """A group of muscle tets with one or more control channels.
 
     Attributes:
@@ -202,6 +204,11 @@ class Muscle:
         fibres = seg[nearest[tets]] / length[nearest[tets], None]
         weights = profiles[falloff](d[tets] / radius)
         return cls(tets, fibres, np.zeros(len(tets)), (name,), stiffness, weights)
+
+    def channel_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Activations lie in [0, 1] (0 passive, 1 full contraction)."""
+        n = len(self.channel_names)
+        return np.zeros(n), np.ones(n)
 
     def init_params(self) -> MuscleParams:
         weights = jnp.ones(len(self.tets)) if self.weights is None else jnp.asarray(self.weights)

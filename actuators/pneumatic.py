@@ -10,8 +10,8 @@ Two models, one per way a soft roboticist thinks about air:
 
   with ``V_c`` the volume the deformed cavity surface encloses (divergence theorem; the
   minus sign because the faces' normals point into the cavity, against the outward
-  normal of the theorem), ``p_c`` the channel's activation in pascals (clipped to the
-  term's bounds) and ``g_c`` a design weight (1 = chamber connected). For a closed
+  normal of the theorem), ``p_c`` the channel's activation in pascals (within the
+  term's bounds: refused outside when concrete, clipped when traced) and ``g_c`` a design weight (1 = chamber connected). For a closed
   surface ``dV_c/dx_a = sum_{f ni a} A_f n_f / 3`` with ``A_f n_f`` the area-weighted
   normal pointing out of the cavity (into the wall), so ``-dE/dx_a = g_c p_c sum A_f n_f / 3``:
   exactly the consistent nodal load of a uniform follower pressure on the deformed wall
@@ -42,6 +42,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from softbody._interfaces import VertexActuator, VolumeActuator
 from softbody.model import SceneError
 
 Array = jax.Array
@@ -218,7 +219,7 @@ class _Cavities:
 
 
 @dataclass(frozen=True, eq=False)
-class CavityPressure(_Cavities):
+class CavityPressure(_Cavities, VertexActuator):
     """Gauge pressure in closed cavities: a vertex term (see the module docstring).
 
     The activation of each channel is the cavity's gauge pressure in pascals, clipped to
@@ -247,6 +248,11 @@ class CavityPressure(_Cavities):
             raise SceneError(f"pressure bounds must satisfy {VACUUM} Pa (vacuum) <= min_pressure <= "
                              f"max_pressure, got [{self.min_pressure}, {self.max_pressure}]")
 
+    def channel_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Gauge pressures lie in ``[min_pressure, max_pressure]`` Pa."""
+        n = len(self.channel_names)
+        return np.full(n, float(self.min_pressure)), np.full(n, float(self.max_pressure))
+
     def pressures(self, activation: Array) -> Array:
         """The pressures ``(c,)`` in Pa that ``activation`` ``(c,)`` asks for, after clipping."""
         a = _check_activation(activation, self.channel_names, "cavity pressure")
@@ -271,7 +277,7 @@ class CavityPressure(_Cavities):
 
 
 @dataclass(frozen=True, eq=False)
-class CavityVolume(_Cavities):
+class CavityVolume(_Cavities, VertexActuator):
     """Volume-controlled cavities: fluid pumped in by volume (a syringe pump), a vertex term.
 
     The activation ``a`` of each channel is the cavity's volume growth: the fluid's
@@ -284,7 +290,8 @@ class CavityVolume(_Cavities):
 
     so at equilibrium the wall carries the same load as :class:`CavityPressure` at the
     pressure :meth:`pressures` reports, and volume control passes the pressure maximum
-    of a ballooning wall. ``a`` is clipped to ``[min_growth, max_growth]``.
+    of a ballooning wall. ``a`` lies in ``[min_growth, max_growth]`` (refused outside when
+    concrete, clipped when traced).
 
     Limit: the fluid's stiffness ``K/V_0 |dV/dx|^2`` (a dense rank-one coupling of the
     cavity's vertices) is not in the prefactored PD matrix, so the solver's PD steps
@@ -313,6 +320,11 @@ class CavityVolume(_Cavities):
         if not (-1.0 <= self.min_growth <= self.max_growth):
             raise SceneError(f"growth bounds must satisfy -1 <= min_growth <= max_growth, got "
                              f"[{self.min_growth}, {self.max_growth}]")
+
+    def channel_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Growths lie in ``[min_growth, max_growth]``."""
+        n = len(self.channel_names)
+        return np.full(n, float(self.min_growth)), np.full(n, float(self.max_growth))
 
     def target_volumes(self, prep: CavityPrep, activation: Array) -> Array:
         """Fluid volumes ``V_t`` ``(c,)`` in m^3 for ``activation`` ``(c,)``."""
@@ -353,7 +365,7 @@ class CellPrep(eqx.Module):
 
 
 @dataclass(frozen=True, eq=False)
-class PneumaticCells:
+class PneumaticCells(VolumeActuator):
     """The cell model: tagged tets whose volume projection targets ``det F = a``.
 
     A volume-target term: for cell ``e`` on channel ``k`` with activation ``a_k`` (the
@@ -425,6 +437,11 @@ class PneumaticCells:
         if not tets:
             raise SceneError("give at least one cell region")
         return cls(np.concatenate(tets), np.concatenate(channel), tuple(regions), **kwargs)
+
+    def channel_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Volume ratios lie in ``[min_expansion, max_expansion]``."""
+        n = len(self.channel_names)
+        return np.full(n, float(self.min_expansion)), np.full(n, float(self.max_expansion))
 
     def init_params(self) -> CellParams:
         """Design parameters: ``weights`` = 1 for every cell."""

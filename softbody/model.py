@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from softbody import linsolve, rotation
+from softbody._interfaces import Actuator, ElementActuator
 from softbody.material import Material, pd_weights
 from softbody.meshing import TetMesh
 from softbody.gradients import Adjoint, Implicit
@@ -152,6 +153,16 @@ class Model:
     def n_channels(self) -> int:
         return len(self.channel_names)
 
+    @functools.cached_property
+    def channel_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(lower, upper)``, each ``(n_channels,)``: the range of every control channel
+        (:meth:`softbody._interfaces.Actuator.channel_bounds`), in ``channel_names`` order."""
+        bounds = [term.channel_bounds() for term in self.terms]
+        if not bounds:
+            return np.zeros(0), np.zeros(0)
+        return (np.concatenate([np.asarray(lo, np.float64) for lo, _ in bounds]),
+                np.concatenate([np.asarray(hi, np.float64) for _, hi in bounds]))
+
     @property
     def method(self) -> IterationMethod:
         """The nonlinear iteration in use (``options.method`` or the default for the scene)."""
@@ -269,7 +280,11 @@ def build(
 
     terms = tuple(actuators)
     channels: list[str] = []
-    for term in terms:
+    for i, term in enumerate(terms):
+        if not isinstance(term, Actuator):
+            raise SceneError(f"actuators[{i}] is a {type(term).__name__}, not an actuator; give terms from "
+                             "softbody.actuators (Muscle, CavityPressure, CavityVolume, PneumaticCells, "
+                             "JointTorque, JointServo) or subclasses of softbody._interfaces.Actuator")
         channels.extend(term.channel_names)
     if len(set(channels)) != len(channels):
         raise SceneError(f"actuator channel names must be unique, got {channels}")
@@ -374,8 +389,8 @@ def prepare(model: Model, params: Params, *, static: bool = False) -> Prepared:
         diag_mass = mass / h**2 + mass_alpha / h
     local = local_matrices(dminv, volume * weight)  # (t, 4, 4)
     term_prep = tuple(term.prepare(model, p, dminv, volume) for term, p in zip(model.terms, params.actuators))
-    for tp in term_prep:
-        if getattr(tp, "local_matrices", None) is not None:
+    for term, tp in zip(model.terms, term_prep):
+        if isinstance(term, ElementActuator):
             local = local.at[tp.tets].add(tp.local_matrices)
     nnz = len(model.pattern.rows)
     data = jnp.zeros(nnz + 1).at[model.local_to_data].add(local.reshape(-1))[:nnz]

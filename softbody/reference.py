@@ -36,6 +36,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from softbody import rotation as rot
+from softbody._interfaces import ElementActuator, VertexActuator, VolumeActuator
 from softbody.elastic import corotated, deformation_gradient, shape_gradients, strain_rate_damping
 from softbody.model import Model, Params, Prepared, SceneError, State, initial_state, prepare
 from softbody.objective import StepInfo, step_objective
@@ -68,7 +69,7 @@ def _volume_target(model: Model, prep: Prepared, slices):
     terms set volume targets."""
     target = 3.0
     for term, tp, a in zip(model.terms, prep.terms, slices):
-        if hasattr(term, "volume_targets"):
+        if isinstance(term, VolumeActuator):
             idx, s_t = term.volume_targets(tp, a)
             target = jnp.full(model.n_tets, 3.0) if isinstance(target, float) else target
             target = target.at[idx].set(3.0 * s_t)
@@ -95,7 +96,7 @@ def _tet_gradients(model: Model, prep: Prepared, xe: Array, q: Array, slices, ta
     r, _ = rot.rotation(f, q, 1)
     _, stress = corotated(f, r, prep.volume, prep.w_s, prep.w_v, target)
     for term, tp, a in zip(model.terms, prep.terms, slices):
-        if hasattr(term, "energy_and_stress"):
+        if isinstance(term, ElementActuator):
             idx = jnp.asarray(tp.tets)
             stress = stress.at[:, :, idx].add(term.energy_and_stress(f[:, :, idx], tp, a)[1])
     if damping is not None:
@@ -125,13 +126,13 @@ def _vertex_gradient(model: Model, prep: Prepared, x: Array, slices):
     """Sum of the vertex actuator terms' gradients ``(n, 3)`` (0.0 when there are none)."""
     grad = 0.0
     for term, tp, a in zip(model.terms, prep.terms, slices):
-        if hasattr(term, "energy_and_gradient"):
+        if isinstance(term, VertexActuator):
             grad = grad + term.energy_and_gradient(x, tp, a)[1]
     return grad
 
 
 def _has_vertex_terms(model: Model) -> bool:
-    return any(hasattr(term, "energy_and_gradient") for term in model.terms)
+    return any(isinstance(term, VertexActuator) for term in model.terms)
 
 
 def _free_dofs(model: Model) -> np.ndarray:

@@ -9,19 +9,27 @@ and actuator energies and ``D`` the strain-rate damping; then ``v_{n+1} = (x_{n+
 The step stops when ``|grad Phi| <= tol |M s / h^2| + atol`` over the free degrees of
 freedom or after ``max_iter`` iterations, and reports its iteration count and residual.
 
-Actuator terms (``model.terms``) come in three kinds, told apart by the methods they have:
+Actuator terms (``model.terms``) come in three kinds, one base class each
+(:mod:`softbody._interfaces`):
 
-* ``energy_and_stress(F_sub, prep, a) -> (energy (m,), dE/dF (3, 3, m))`` on the tets
+* :class:`~softbody._interfaces.ElementActuator`,
+  ``energy_and_stress(F_sub, prep, a) -> (energy (m,), dE/dF (3, 3, m))`` on the tets
   ``prep.tets``: PD-style element terms (muscles); their PD matrix blocks
   ``prep.local_matrices`` ``(m, 4, 4)`` are added to the prefactored matrix.
-* ``energy_and_gradient(x, prep, a) -> (energy, dE/dx (n, 3))``: vertex terms (cavity
+* :class:`~softbody._interfaces.VertexActuator`,
+  ``energy_and_gradient(x, prep, a) -> (energy, dE/dx (n, 3))``: vertex terms (cavity
   pressure as ``-p V_cavity(x)``); they leave the matrix alone (``prep.local_matrices``
   is ``None``).
-* ``volume_targets(prep, a) -> (tets (m,), s (m,))``: the volume term of those tets
+* :class:`~softbody._interfaces.VolumeActuator`,
+  ``volume_targets(prep, a) -> (tets (m,), s (m,))``: the volume term of those tets
   targets ``det F = s^3`` instead of 1 (pneumatic cells: ``s = a^(1/3)``).
 
-Every term also has ``channel_names``, ``init_params()`` and
-``prepare(model, params, dminv, volume)``.
+Every term also has ``channel_names``, ``channel_bounds()``, ``init_params()`` and
+``prepare(model, params, dminv, volume)``. Concrete activations outside a channel's bounds
+(a muscle's [0, 1], a cavity's pressure limits, ...) are refused with a :class:`SceneError`
+before anything compiles; inside a traced computation (an optimisation) they are clipped
+to the bounds, with zero gradient beyond: parametrise bounded controls there (e.g.
+:class:`softbody.control.ControlGrid`).
 
 Controls have one layout: an array ``(n_steps, n_channels)`` of actuator activations in
 the order of ``model.channel_names`` (each actuator term's channels, in the order the
@@ -86,6 +94,24 @@ class Trajectory(eqx.Module):
     info: StepInfo
 
 
+def _check_bounds(model: Model, controls, where) -> None:
+    """Refuse concrete activations outside their channels' bounds (traced ones pass: the
+    terms clip them). ``controls`` is ``(n_channels,)`` or ``(n_steps, n_channels)``;
+    ``where(index)`` names an offending entry in the message."""
+    if controls is None or isinstance(controls, jax.core.Tracer) or model.n_channels == 0:
+        return
+    values = np.asarray(controls)
+    lower, upper = model.channel_bounds
+    bad = np.argwhere((values < lower) | (values > upper))
+    if len(bad):
+        index = tuple(int(i) for i in bad[0])
+        c = index[-1]
+        raise SceneError(
+            f"{where(index)} = {values[index]:.6g} is outside channel {model.channel_names[c]!r}'s range "
+            f"[{lower[c]:.6g}, {upper[c]:.6g}] ({len(bad)} value(s) out of range); give values in range "
+            "(to optimise bounded controls, parametrise them, e.g. softbody.control.ControlGrid)")
+
+
 def _activation(model: Model, activation):
     if activation is None:
         return jnp.zeros(model.n_channels)
@@ -93,6 +119,7 @@ def _activation(model: Model, activation):
     if activation.shape != (model.n_channels,):
         raise SceneError(f"activation must have shape ({model.n_channels},) (channels {list(model.channel_names)}), "
                          f"got {tuple(activation.shape)}")
+    _check_bounds(model, activation, lambda i: f"activation[{i[0]}]")
     return activation
 
 
@@ -136,6 +163,7 @@ def _check_controls(model: Model, controls, forces, n_steps):
         bad_rows = ~np.isfinite(np.asarray(value)).reshape(value.shape[0], -1).all(axis=1)
         if bad_rows.any():  # numpy, not jnp: under an outer jit a jnp test of a constant is traced
             raise SceneError(f"{name} hold NaN or inf (first at step {int(np.argmax(bad_rows))}); give finite values")
+    _check_bounds(model, controls, lambda i: f"controls[{i[0]}, {i[1]}] (step {i[0]})")
     if n_steps is None or int(n_steps) < 1:
         raise SceneError("give n_steps >= 1 (or controls/forces whose first axis is the number of steps)")
     return controls, forces, int(n_steps)

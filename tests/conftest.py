@@ -7,7 +7,7 @@ import jax  # noqa: E402
 import pytest  # noqa: E402
 
 import softbody  # noqa: E402,F401  (turns on float64 before any test builds arrays)
-from softbody import linsolve  # noqa: E402
+from softbody import linsolve, reference, simulate  # noqa: E402
 
 #: XLA's CPU backend maps each compiled program's code into memory (~6 mappings for a
 #: small one). A full run compiles thousands of programs; past the kernel's limit
@@ -45,3 +45,15 @@ def _bound_mappings():
     yield
     if _mappings() > MAPPINGS_LIMIT:
         _release()
+
+
+@pytest.fixture
+def no_compiling(monkeypatch):
+    """Make any attempt to run (compile) a rollout, a static solve or a Newton step fail, so
+    a test can show that bad input is refused before anything compiles."""
+    def forbidden(*args, **kwargs):
+        raise AssertionError("reached the compiled solver: the input was not checked first")
+
+    for name in ("_rollout", "_solve_static"):
+        monkeypatch.setattr(simulate, name, forbidden)
+    monkeypatch.setattr(reference, "prepare", forbidden)

@@ -444,17 +444,6 @@ def test_newton_reports_non_convergence(muscle_beam):
 # --------------------------------------------------------------------------------------
 
 
-@pytest.fixture
-def no_compiling(monkeypatch):
-    """Make any attempt to run (compile) a rollout, a static solve or a Newton step fail."""
-    def forbidden(*args, **kwargs):
-        raise AssertionError("reached the compiled solver: the input was not checked first")
-
-    for name in ("_rollout", "_solve_static"):
-        monkeypatch.setattr(simulate, name, forbidden)
-    monkeypatch.setattr(reference, "prepare", forbidden)
-
-
 @pytest.mark.parametrize("kwargs, match", [
     ({"E": -1e6}, "Young's modulus"),
     ({"E": float("nan")}, "Young's modulus"),

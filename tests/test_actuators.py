@@ -337,8 +337,13 @@ def test_cells_expand_uniformly_to_the_exact_ratio(cells_box):
     w_s, w_v = pd_weights(E_WALL, NU)
     prep = prepare(model, params, static=True)
     rest = jnp.asarray(mesh.points)
-    for a in (1.0, 0.5, 2.0, 10.0):  # 10 is clipped to max_expansion = 5
-        x, info = solve_static(model, params, activation=jnp.array([a]), x0=rest)
+    # 10 lies above max_expansion = 5: refused when given concretely, clipped to 5 when
+    # traced (inside an optimisation).
+    with pytest.raises(SceneError, match=r"activation\[0\] = 10 is outside channel 'air'.s range \[0.2, 5\]"):
+        solve_static(model, params, activation=jnp.array([10.0]), x0=rest)
+    traced = jax.jit(lambda a: solve_static(model, params, activation=a, x0=rest))
+    for a in (1.0, 0.5, 2.0, 10.0):
+        x, info = traced(jnp.array([a]))
         assert bool(info.converged)
         s = min(a, 5.0) ** (1.0 / 3.0)
         lam = (w_s + w_v * s) / (w_s + w_v)
@@ -384,6 +389,27 @@ def test_bad_actuator_input(finger, cells_box):
     _, cells, cmodel, cparams = cells_box
     with pytest.raises(SceneError, match="pneumatic cell activation"):
         cells.volume_targets(prepare(cmodel, cparams).terms[0], jnp.ones((1, 1)))
+
+
+def test_activations_out_of_range_are_refused(strip, finger, no_compiling):
+    """Concrete activations outside a channel's range are refused before compiling, naming
+    the step, the channel and the range (a muscle at 2 and at 50 used to behave alike)."""
+    mesh, _, model, params = strip
+    state = initial_state(model, params)
+    controls = np.full((4, 1), 0.2)
+    controls[2, 0] = 2.0
+    with pytest.raises(
+            SceneError, match=r"controls\[2, 0\] \(step 2\) = 2 is outside channel 'axial'.s range \[0, 1\]"):
+        rollout(model, params, state, controls=controls)
+    with pytest.raises(SceneError, match=r"= -0.5 is outside channel 'axial'"):
+        solve_static(model, params, activation=jnp.array([-0.5]))
+    fmesh, _, fmodel, fparams = finger
+    bounded = CavityPressure.from_regions(fmesh, ["cavity:chamber"], max_pressure=5e4)
+    bmodel, bparams = build(fmesh, Material(E=E_WALL, nu=NU), fixed="fixed", options=STATIC, actuators=(bounded,))
+    with pytest.raises(SceneError, match=r"= 60000 is outside channel 'cavity:chamber'.s range"):
+        solve_static(bmodel, bparams, activation=jnp.array([6e4]))
+    with pytest.raises(SceneError, match=r"actuators\[0\] is a dict, not an actuator"):
+        build(fmesh, Material(E=E_WALL, nu=NU), fixed="fixed", actuators=({"pressure": 1.0},))
 
 
 def test_pressure_clipped_to_bounds():
