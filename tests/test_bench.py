@@ -1,9 +1,74 @@
-"""The gradient benchmark's child-process guard: memory cap, time limit, skipped horizons."""
+"""``softbody bench``: no overwriting without --force, the summary it prints; the gradient
+benchmark's child-process guard: memory cap, time limit, skipped horizons."""
 
 import json
 import sys
+import types
 
+import pytest
+
+from softbody import cli
 from softbody.bench import gradients
+
+
+@pytest.fixture
+def fake_benchmark(monkeypatch):
+    """Stand in a fast module for ``softbody.bench.pd_cantilever``: it writes a tiny real PNG
+    and returns a few figures; ``calls`` records the output directories it ran with."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    calls = []
+
+    def run(out, quick):
+        calls.append(out)
+        plt.imsave(out / "pd-cantilever.png", [[0.0, 1.0], [1.0, 0.0]])
+        return {"forward_s_per_frame": 0.1234567, "iterations_per_frame": 72.6, "all_converged": True,
+                "method": "LBFGS()", "forward_s_per_frame_runs": [0.12, 0.13], "diffpd": {"forward_s_per_frame": 1.65}}
+
+    module = types.ModuleType("softbody.bench.pd_cantilever")
+    module.run = run
+    monkeypatch.setitem(sys.modules, "softbody.bench.pd_cantilever", module)
+    return calls
+
+
+def test_bench_refuses_to_overwrite_earlier_results_without_force(tmp_path, fake_benchmark, capsys):
+    earlier = tmp_path / "pd-cantilever.json"
+    earlier.write_text('{"forward_s_per_frame": 0.2}')
+    assert cli.main(["bench", "pd-cantilever", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert f"softbody bench: {earlier} already exists" in err and "--force" in err
+    assert fake_benchmark == [] and earlier.read_text() == '{"forward_s_per_frame": 0.2}'
+
+    assert cli.main(["bench", "pd-cantilever", "--out", str(tmp_path), "--force"]) == 0
+    assert fake_benchmark == [tmp_path]
+    assert json.loads(earlier.read_text())["forward_s_per_frame"] == 0.1234567
+
+
+def test_bench_refuses_an_out_that_is_a_file(tmp_path, fake_benchmark, capsys):
+    for target in (tmp_path / "notes.txt", tmp_path / "notes.txt" / "sub"):
+        (tmp_path / "notes.txt").write_text("mine")
+        assert cli.main(["bench", "pd-cantilever", "--out", str(target), "--force"]) == 2
+        err = capsys.readouterr().err
+        assert f"softbody bench: --out {target}: {tmp_path / 'notes.txt'} is a file, not a directory" in err
+        assert fake_benchmark == [] and (tmp_path / "notes.txt").read_text() == "mine"
+
+
+def test_bench_says_what_it_runs_then_summarises_figures_and_files(tmp_path, fake_benchmark, capsys):
+    out = tmp_path / "results"
+    out.mkdir()
+    (out / "older.png").write_bytes(b"not rewritten by this run")
+    assert cli.main(["bench", "pd-cantilever", "--quick", "--out", str(out)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == f"softbody bench pd-cantilever: running (quick) ... writing to {out}"
+    text = "\n".join(lines)
+    assert "forward_s_per_frame: 0.1235" in text and "iterations_per_frame: 72.6" in text
+    assert "all_converged: True" in text
+    assert f"wrote {out / 'pd-cantilever.json'}" in text and f"wrote {out / 'pd-cantilever.png'}" in text
+    assert "older.png" not in text
+    assert "{" not in text and "environment" not in text  # no JSON dump
 
 
 def test_a_child_past_the_memory_cap_is_stopped_and_reported():

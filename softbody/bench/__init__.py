@@ -1,5 +1,8 @@
 """Benchmarks: ``softbody bench NAME --out DIR`` writes ``DIR/NAME.json`` and PNG charts.
 
+An existing ``DIR/NAME.json`` (an earlier run's results) is replaced only with ``--force``;
+the command refuses before running anything.
+
 Each benchmark is a module ``softbody.bench.<name>`` (dashes become underscores) with
 ``run(out: pathlib.Path, quick: bool) -> dict``: it writes its charts into ``out`` and
 returns the figures, which are written to ``out/<name>.json`` together with the machine
@@ -12,6 +15,7 @@ import importlib
 import json
 import os
 import platform
+import sys
 import time
 from pathlib import Path
 
@@ -29,9 +33,12 @@ BENCHMARKS = {
 
 
 def add_arguments(parser):
+    """Arguments of ``softbody bench``."""
     parser.add_argument("name", choices=sorted(BENCHMARKS), help="which benchmark")
     parser.add_argument("--out", default="bench-out", help="output directory (default: bench-out)")
     parser.add_argument("--quick", action="store_true", help="a smaller, faster variant (for smoke tests)")
+    parser.add_argument("--force", action="store_true",
+                        help="replace the results of an earlier run in --out")
 
 
 def environment() -> dict:
@@ -50,21 +57,96 @@ def environment() -> dict:
     }
 
 
-def run_benchmark(name: str, out: Path, quick: bool = False) -> dict:
-    """Run one benchmark and write ``out/<name>.json``; returns the figures."""
+def check_output(name: str, out: Path, force: bool = False) -> Path:
+    """Check that benchmark ``name`` may write into ``out``, before it runs.
+
+    Arguments:
+        name: the benchmark.
+        out: its output directory (created later if missing).
+        force: allow replacing ``out/<name>.json`` from an earlier run.
+
+    Returns:
+        The path of the JSON it will write, ``out/<name>.json``.
+
+    Raises:
+        NotADirectoryError: ``out``, or a folder above it, is a file.
+        FileExistsError: ``out/<name>.json`` exists and ``force`` is false.
+    """
+    out = Path(out)
+    for folder in (out, *out.parents):
+        if folder.exists():
+            if not folder.is_dir():
+                raise NotADirectoryError(f"--out {out}: {folder} is a file, not a directory; "
+                                         f"name a directory for the results")
+            break
+    path = out / f"{name}.json"
+    if path.exists() and not force:
+        raise FileExistsError(f"{path} already exists (an earlier run's results); pass --force "
+                              f"to replace them or choose another --out")
+    return path
+
+
+def run_benchmark(name: str, out: Path, quick: bool = False, force: bool = False) -> dict:
+    """Run one benchmark and write ``out/<name>.json``.
+
+    Arguments:
+        name: the benchmark (a key of :data:`BENCHMARKS`).
+        out: the output directory; created if missing.
+        quick: run the smaller, faster variant.
+        force: replace the results of an earlier run.
+
+    Returns:
+        The figures, as written to the JSON.
+
+    Raises:
+        ValueError: unknown benchmark.
+        NotADirectoryError, FileExistsError: see :func:`check_output`.
+    """
     if name not in BENCHMARKS:
         raise ValueError(f"unknown benchmark {name!r}; choose one of {sorted(BENCHMARKS)}")
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    path = check_output(name, out, force)
+    path.parent.mkdir(parents=True, exist_ok=True)
     module = importlib.import_module(f"softbody.bench.{name.replace('-', '_')}")
-    figures = module.run(out, quick)
+    figures = module.run(path.parent, quick)
     figures = {"benchmark": name, "quick": quick, **figures, "environment": environment()}
-    (out / f"{name}.json").write_text(json.dumps(figures, indent=2, default=float))
+    path.write_text(json.dumps(figures, indent=2, default=float))
     return figures
 
 
+#: how many top-level numeric figures the command prints (the JSON holds all of them)
+SHOWN_FIGURES = 6
+
+
+def summary(figures: dict, written: list[Path]) -> str:
+    """The lines ``softbody bench`` ends with.
+
+    Arguments:
+        figures: a benchmark's figures, as :func:`run_benchmark` returns them.
+        written: the files the run wrote (the JSON, the PNGs).
+
+    Returns:
+        The first :data:`SHOWN_FIGURES` top-level numeric figures, one a line, then a
+        ``wrote PATH`` line per file.
+    """
+    numbers = [(k, v) for k, v in figures.items() if k != "quick" and isinstance(v, (int, float))]
+    shown = numbers[:SHOWN_FIGURES]
+    lines = [f"  {k}: {v}" if isinstance(v, (bool, int)) else f"  {k}: {v:.4g}" for k, v in shown]
+    return "\n".join(lines + [f"wrote {p}" for p in written])
+
+
 def run(args) -> int:
-    figures = run_benchmark(args.name, Path(args.out), args.quick)
-    print(json.dumps({k: v for k, v in figures.items() if not isinstance(v, (list, dict))}, indent=2, default=float))
-    print(f"wrote {Path(args.out) / (args.name + '.json')}")
+    """Run ``softbody bench``; returns the exit status (0 done, 2 output refused)."""
+    out = Path(args.out)
+    try:
+        path = check_output(args.name, out, args.force)
+    except (NotADirectoryError, FileExistsError) as err:
+        print(f"softbody bench: {err}", file=sys.stderr)
+        return 2
+    quick = " (quick)" if args.quick else ""
+    print(f"softbody bench {args.name}: running{quick} ... writing to {out}", flush=True)
+    before = {p: p.stat().st_mtime_ns for p in out.glob("*.png")}
+    figures = run_benchmark(args.name, out, args.quick, args.force)
+    charts = sorted(p for p in out.glob("*.png") if before.get(p) != p.stat().st_mtime_ns)
+    print(f"softbody bench {args.name}: done (all figures in the JSON)")
+    print(summary(figures, [path, *charts]))
     return 0
