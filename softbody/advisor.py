@@ -1,9 +1,9 @@
 """Fidelity advisor: the cheapest PD set-up (mesh, time step, tolerance) that meets an error.
 
 ``softbody advise cantilever --tol 1e-2`` reads a measured speed/accuracy front (the runs of
-``softbody bench pareto``, from ``--from DIR/pareto.json``) or, without ``--from``, measures
-a small one (two coarse meshes, a few time steps and tolerances, a short horizon), keeps
-the projective-dynamics runs whose relative tip-trajectory error is at most ``tol``, and
+``softbody bench pareto``, from ``--from DIR`` or ``--from DIR/pareto.json``) or, without
+``--from``, measures a small one (two coarse meshes, a few time steps and tolerances, a short
+horizon), keeps the projective-dynamics runs whose relative tip-trajectory error is at most ``tol``, and
 picks the one with the least wall time. It reports the choice, its measured error and
 time, and the faster configurations it passed over with the errors that ruled them out.
 
@@ -13,9 +13,11 @@ the simulated time (phase error), so a longer run needs a re-measured front.
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import json
 import math
+import sys
 from pathlib import Path
 
 from softbody.bench.pareto import Cantilever, measure_front
@@ -29,6 +31,10 @@ SCENES = {"cantilever": Cantilever}
 SMALL_FRONT = {"scene": Cantilever(duration=0.05, divisions=(1, 2)),
                "pd_dts": (1 / 300, 1 / 1000, 1 / 3000, 1 / 10000, 1 / 30000), "pd_tols": (1e-6,),
                "coarse_dts": (1 / 1000, 1 / 10000), "coarse_tols": (1e-6,)}
+
+
+#: the fields :func:`advise` reads from a projective-dynamics row of the front
+PD_FIELDS = ("mesh_k", "vertices", "dt", "tol")
 
 
 class AdviceError(ValueError):
@@ -111,36 +117,84 @@ def advise(rows, tol: float) -> Advice:
     return Advice(choice=choice, tol=tol, candidates=len(ok), passed_over=tuple(faster))
 
 
-def load_front(directory, scene_name: str) -> list:
-    """The runs of ``directory/pareto.json``.
+def load_front(source, scene_name: str) -> tuple[Path, list]:
+    """The runs of a front written by ``softbody bench pareto``.
+
+    Arguments:
+        source: the ``pareto.json`` file, or the directory holding it.
+        scene_name: the scene the advice is for (a key of :data:`SCENES`).
+
+    Returns:
+        ``(path, runs)``: the file read and its ``runs``.
 
     Raises:
-        AdviceError: no such file, or it was measured on another scene.
+        AdviceError: no such file, not JSON, not a pareto result (no ``scene`` or ``runs``,
+            a run lacking a field the advice needs), or measured on another scene.
     """
-    path = Path(directory) / "pareto.json"
+    path = Path(source)
+    if path.is_dir():
+        path = path / "pareto.json"
     if not path.is_file():
-        raise AdviceError(f"{path} does not exist; write it with `softbody bench pareto --out {directory}`")
-    data = json.loads(path.read_text())
+        raise AdviceError(f"{path} does not exist; write it with `softbody bench pareto --out DIR` "
+                          f"and pass --from DIR")
+    try:
+        data = json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise AdviceError(f"{path} is not JSON ({err}); pass the pareto.json that "
+                          f"`softbody bench pareto` writes") from None
+    if not (isinstance(data, dict) and isinstance(data.get("scene"), dict)
+            and isinstance(data.get("runs"), list)):
+        raise AdviceError(f"{path} is not a pareto benchmark result (it has no 'scene' and 'runs'); "
+                          f"pass the pareto.json that `softbody bench pareto` writes")
+    for i, row in enumerate(data["runs"]):
+        pd = isinstance(row, dict) and str(row.get("method", "")).startswith("PD")
+        needed = ("method", "wall_s", "rel_error") + (PD_FIELDS if pd else ())
+        missing = [k for k in needed if not isinstance(row, dict) or k not in row]
+        if missing:
+            raise AdviceError(f"{path} is not a pareto benchmark result: run {i} lacks "
+                              f"{', '.join(missing)}")
     expected = dataclasses.asdict(SCENES[scene_name]())
-    measured = data.get("scene", {})
+    measured = data["scene"]
     differs = {k for k in expected if k not in ("duration", "divisions") and measured.get(k) != expected[k]}
     if differs:
         raise AdviceError(f"{path} was measured on another scene (differs in {sorted(differs)})")
-    return data["runs"]
+    return path, data["runs"]
+
+
+def tolerance(text: str) -> float:
+    """``--tol``'s type: a relative error strictly between 0 and 1.
+
+    Raises:
+        argparse.ArgumentTypeError: ``text`` is not such a number (argparse prints the
+            message and exits with status 2).
+    """
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not 0 < value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a relative error between 0 and 1 "
+                                         f"(exclusive); give e.g. 1e-2 for 1%")
+    return value
 
 
 def add_arguments(parser):
+    """Arguments of ``softbody advise``."""
     parser.add_argument("scene", choices=sorted(SCENES), help="the scene to advise on")
-    parser.add_argument("--tol", type=float, default=1e-2, help="requested relative error of the tip trajectory")
-    parser.add_argument("--from", dest="source", default=None,
-                        help="a directory holding pareto.json (softbody bench pareto); default: measure a small front")
+    parser.add_argument("--tol", type=tolerance, default=1e-2,
+                        help="requested relative error of the tip trajectory, between 0 and 1 "
+                             "(default: 0.01)")
+    parser.add_argument("--from", dest="source", default=None, metavar="DIR|FILE",
+                        help="pareto.json written by `softbody bench pareto`, or its directory "
+                             "(default: measure a small front, a few minutes)")
 
 
 def run(args) -> int:
+    """Run ``softbody advise``; returns the exit status (0 advice given, 2 bad input or none)."""
     try:
         if args.source is not None:
-            rows = load_front(args.source, args.scene)
-            print(f"front: {len(rows)} runs from {Path(args.source) / 'pareto.json'}")
+            path, rows = load_front(args.source, args.scene)
+            print(f"front: {len(rows)} runs from {path}")
         else:
             grid = SMALL_FRONT
             print(f"measuring a small front on the {args.scene} scene ({grid['scene'].duration} s simulated)...",
@@ -148,7 +202,7 @@ def run(args) -> int:
             rows, _ = measure_front(grid["scene"], grid, methods=("PD L-BFGS", "PD mesh"))
         advice = advise(rows, args.tol)
     except AdviceError as err:
-        print(f"softbody advise: {err}")
+        print(f"softbody advise: {err}", file=sys.stderr)
         return 2
     print(advice.explain())
     return 0

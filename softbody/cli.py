@@ -2,13 +2,15 @@
 
 Each subcommand lives in its own module, which provides ``add_arguments(parser)`` and
 ``run(args) -> int``; it is imported only when that subcommand runs, so ``softbody --help``
-stays fast.
+stays fast. Every parser reads negative numbers in any float form (``-1e5``, ``-.5``,
+``-2E-3``) as values, so ``--gravity 0 0 -1e5`` works.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import re
 import sys
 
 #: name -> (module, one-line help)
@@ -20,11 +22,28 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "render": ("softbody.render", "render a result offscreen to PNG, GIF or MP4 (pyvista)"),
     "bench": ("softbody.bench", "run a benchmark; writes DIR/<name>.json and a PNG"),
     "advise": ("softbody.advisor", "pick the cheapest mesh, time step and PD tolerance that meet an error"),
+    "cache": ("softbody.cache", "show or clear the compiled programs kept between runs"),
 }
 
 
+class Parser(argparse.ArgumentParser):
+    """An :class:`argparse.ArgumentParser` that reads every negative number as a value.
+
+    argparse takes a token starting with ``-`` for an option unless it looks like a negative
+    number, and its own test knows only ``-5`` and ``-.5`` forms: ``--gravity 0 0 -1e5``
+    fails with "expected 3 arguments". Here ``-1e5``, ``-2E-3``, ``-5.`` and ``-.5e2`` are
+    numbers too.
+    """
+
+    NEGATIVE_NUMBER = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$")
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = self.NEGATIVE_NUMBER
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="softbody",
         description="Differentiable soft-robot design and control workbench.",
     )
@@ -44,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     name = argv[0]
     module_name, help_text = COMMANDS[name]
     module = importlib.import_module(module_name)
-    sub = argparse.ArgumentParser(prog=f"softbody {name}", description=help_text)
+    sub = Parser(prog=f"softbody {name}", description=help_text)
     module.add_arguments(sub)
     args = sub.parse_args(argv[1:])
     return int(module.run(args) or 0)
