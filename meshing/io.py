@@ -21,6 +21,8 @@ float64: fields come back as float64.
 
 from __future__ import annotations
 
+import re
+import zlib
 from pathlib import Path
 
 import meshio
@@ -29,6 +31,19 @@ import numpy as np
 from .mesh import MeshError, Region, TetMesh, boundary_faces
 
 FORMATS = {".msh": "gmsh", ".vtu": "vtu"}
+
+# meshio's reader of each format, called directly: meshio.read prints a reader's ReadError
+# and exits the process.
+_READERS = {"gmsh": meshio.gmsh.read, "vtu": meshio.vtu.read}
+# What those readers raise on a truncated or damaged file (counts that do not match the
+# numbers read, vertex numbers out of range, XML that does not parse, compressed data that
+# does not inflate).
+_DAMAGED = (meshio.ReadError, ValueError, IndexError, KeyError, EOFError, zlib.error)
+_REWRITE = "write it again with `softbody mesh` (or softbody.meshing.save)"
+# A gmsh section's opening or end marker, alone on its line.
+_GMSH_MARKER = re.compile(rb"^\$(End)?(MeshFormat|PhysicalNames|Entities|PartitionedEntities|Nodes|Elements|"
+                          rb"Periodic|GhostElements|Parametrizations|NodeData|ElementData|ElementNodeData|"
+                          rb"InterpolationScheme|Comments)\r?$", re.MULTILINE)
 
 # Faces of a tet opposite vertices 0..3, outward for a positively oriented tet.
 _LOCAL_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
@@ -40,6 +55,47 @@ def _format(path: Path) -> str:
     except KeyError:
         raise MeshError(f"unsupported mesh file type {path.suffix!r} ({path}); "
                         f"use one of {sorted(FORMATS)}") from None
+
+
+def _open_gmsh_section(path: Path) -> str | None:
+    """The section a gmsh file ends inside (its end marker missing), or ``None``."""
+    with path.open("rb") as f:
+        f.seek(max(0, path.stat().st_size - 64))
+        last = f.read().rstrip().rsplit(b"\n", 1)[-1]
+    if _GMSH_MARKER.fullmatch(last) and last.startswith(b"$End"):
+        return None
+    markers = list(_GMSH_MARKER.finditer(path.read_bytes()))
+    if markers and markers[-1].group(1) is None:
+        return markers[-1].group(2).decode()
+    return None
+
+
+def _read(path: Path, fmt: str) -> meshio.Mesh:
+    """Read ``path`` with meshio's reader for ``fmt``; a file that is not one is a MeshError."""
+    with path.open("rb") as f:
+        head = f.read(64).lstrip(b"\xef\xbb\xbf \t\r\n")
+    if not head:
+        raise MeshError(f"{path} is empty; {_REWRITE}")
+    if fmt == "gmsh" and not head.startswith(b"$MeshFormat"):
+        raise MeshError(f"{path} is not a gmsh .msh file (it does not start with $MeshFormat); {_REWRITE}")
+    if fmt == "vtu" and not head.startswith(b"<"):
+        raise MeshError(f"{path} is not a VTK XML .vtu file (it does not start with an XML tag); {_REWRITE}")
+    try:
+        raw, error = _READERS[fmt](str(path)), None
+    except _DAMAGED as err:
+        raw, error = None, err
+    except MemoryError as err:  # a damaged count asks for petabytes
+        raise MeshError(f"{path}: reading it asked for more memory than there is ({err}); the file is "
+                        f"damaged, or too big for this machine: {_REWRITE}") from None
+    # meshio reads a gmsh file that stops after a complete section, dropping the rest.
+    section = _open_gmsh_section(path) if fmt == "gmsh" else None
+    if section is not None:
+        raise MeshError(f"{path}: the file ends inside its ${section} section (truncated or damaged): {_REWRITE}")
+    if error is not None:
+        kind = {"gmsh": "gmsh .msh", "vtu": "VTK .vtu"}[fmt]
+        detail = f": {error}" if str(error) else ""
+        raise MeshError(f"{path} is not a complete {kind} file (truncated or damaged{detail}): {_REWRITE}")
+    return raw
 
 
 def _canonical(faces: np.ndarray) -> np.ndarray:
@@ -143,13 +199,15 @@ def load(path: str | Path) -> TetMesh:
 
     Raises:
         FileNotFoundError: if there is no such file.
-        MeshError: on an unknown suffix or a file with no tetrahedra.
+        MeshError: on an unknown suffix, a file that is empty, not of its suffix's format,
+            truncated or damaged (the message names the gmsh section it ends inside), or a
+            file with no tetrahedra.
     """
     path = Path(path)
     fmt = _format(path)
     if not path.is_file():
         raise FileNotFoundError(f"no mesh file at {path}")
-    raw = meshio.read(path, file_format=fmt)
+    raw = _read(path, fmt)
     blocks = [i for i, c in enumerate(raw.cells) if c.type == "tetra"]
     if not blocks:
         raise MeshError(f"{path} has no tetrahedra (cell types: {[c.type for c in raw.cells]})")

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import struct
+
 import gmsh
 import meshio
 import numpy as np
 import pytest
 
+from softbody.cli import main
 from softbody.meshing import (
     Box,
     InBox,
@@ -120,6 +123,95 @@ def test_load_reorients_foreign_tets(tmp_path):
     back = load(tmp_path / "foreign.vtu")
     assert np.all(back.volumes() > 0)
     assert back.volumes().sum() == pytest.approx(m.volumes().sum())
+
+
+# ---------------------------------------------------------------------------------------
+# Damaged mesh files
+
+
+@pytest.fixture(scope="module")
+def cube_files(tmp_path_factory) -> dict[str, bytes]:
+    """The bytes of the example cube written by :func:`save` as ``.msh`` and ``.vtu``."""
+    folder = tmp_path_factory.mktemp("cube")
+    return {suffix: save(cube(), folder / f"cube{suffix}").read_bytes() for suffix in (".msh", ".vtu")}
+
+
+def halfway_into(data: bytes, section: str) -> bytes:
+    """``data`` cut halfway between the start of a gmsh section and its end marker."""
+    start, end = data.index(f"${section}\n".encode()), data.index(f"$End{section}\n".encode())
+    return data[: (start + end) // 2]
+
+
+@pytest.mark.parametrize("section", ["Nodes", "Elements", "NodeData", "ElementData"])
+def test_truncated_msh_names_the_section_it_ends_in(cube_files, tmp_path, section):
+    cut = tmp_path / "cut.msh"
+    cut.write_bytes(halfway_into(cube_files[".msh"], section))
+    with pytest.raises(MeshError, match=rf"cut\.msh: the file ends inside its \${section} section "
+                                        r"\(truncated or damaged\): write it again with `softbody mesh`"):
+        load(cut)
+
+
+def test_msh_cut_before_an_end_marker_is_not_read_as_a_mesh_without_regions(cube_files, tmp_path):
+    """meshio reads this file with a warning, without the region sections after the tets."""
+    data = cube_files[".msh"]
+    cut = tmp_path / "cut.msh"
+    cut.write_bytes(data[: data.index(b"$EndElements")])
+    with pytest.raises(MeshError, match=r"cut\.msh: the file ends inside its \$Elements section"):
+        load(cut)
+
+
+def test_msh_damaged_inside_its_tets_is_named(cube_files, tmp_path):
+    data = bytearray(cube_files[".msh"])
+    start, end = data.index(b"$Elements\n"), data.index(b"$EndElements\n")
+    middle = (start + end) // 2
+    data[middle:middle + 64] = b"\xff" * 64  # vertex numbers far beyond the mesh's
+    bad = tmp_path / "bad.msh"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(MeshError, match=r"bad\.msh is not a complete gmsh \.msh file \(truncated or damaged"):
+        load(bad)
+
+
+def test_msh_whose_node_count_is_damaged_is_named(cube_files, tmp_path):
+    """A damaged count in the binary $Nodes header asks meshio for exabytes."""
+    data = bytearray(cube_files[".msh"])
+    header = data.index(b"$Nodes\n") + len(b"$Nodes\n")  # blocks, nodes, min tag, max tag (uint64)
+    assert struct.unpack_from("<4Q", data, header)[1] == cube().n_vertices
+    struct.pack_into("<Q", data, header + 8, 1 << 58)
+    bad = tmp_path / "bad.msh"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(MeshError, match=r"bad\.msh: reading it asked for more memory than there is .*"
+                                        r"the file is damaged, or too big for this machine"):
+        load(bad)
+
+
+@pytest.mark.parametrize("suffix, kind", [(".msh", r"a gmsh \.msh file \(it does not start with \$MeshFormat\)"),
+                                          (".vtu", r"a VTK XML \.vtu file \(it does not start with an XML tag\)")])
+def test_text_and_empty_files_are_not_meshes(tmp_path, suffix, kind):
+    text = tmp_path / f"notes{suffix}"
+    text.write_text("these are notes about the finger, not a mesh\n")
+    with pytest.raises(MeshError, match=rf"notes\{suffix} is not {kind}; write it again with `softbody mesh`"):
+        load(text)
+    (tmp_path / f"empty{suffix}").write_bytes(b"")
+    with pytest.raises(MeshError, match=rf"empty\{suffix} is empty"):
+        load(tmp_path / f"empty{suffix}")
+
+
+def test_truncated_vtu_is_named(cube_files, tmp_path):
+    data = cube_files[".vtu"]
+    half = tmp_path / "half.vtu"
+    half.write_bytes(data[: len(data) // 2])
+    with pytest.raises(MeshError, match=r"half\.vtu is not a complete VTK \.vtu file \(truncated or damaged"):
+        load(half)
+
+
+def test_softbody_run_reports_a_truncated_mesh_without_a_traceback(cube_files, tmp_path, capsys):
+    cut = tmp_path / "cut.msh"
+    cut.write_bytes(halfway_into(cube_files[".msh"], "Elements"))
+    out = tmp_path / "result.npz"
+    assert main(["run", str(cut), "--steps", "1", "-o", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"softbody run: {cut}: the file ends inside its $Elements section") and "Traceback" not in err
+    assert not out.exists()
 
 
 # ---------------------------------------------------------------------------------------
