@@ -38,10 +38,17 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from softbody import rotation as rot
+from softbody._types import State
+from softbody.elastic import deformation_gradient
+from softbody.objective import solve_step, step_gradient_vjp, step_hessian, step_objective
+from softbody.solvers import Unroll
 
 
 Array = jax.Array
@@ -79,8 +86,6 @@ class Unrolled(Adjoint):
     remat: bool = True
 
     def solve(self, model, prep, state, activation, force, *, static):
-        from softbody.objective import solve_step
-        from softbody.solvers import Unroll
 
         unroll = Unroll(extra=self.extra_iterations, remat=self.remat)
 
@@ -116,10 +121,6 @@ class Implicit(Adjoint):
     segment_checkpoints: bool = False
 
     def solve(self, model, prep, state, activation, force, *, static):
-        from softbody import rotation as rot
-        from softbody.elastic import deformation_gradient
-        from softbody.model import State
-        from softbody.objective import solve_step, step_gradient_vjp, step_hessian, step_objective
 
         if model.obstacles:
             # Contact adds impulses beyond the stationarity of Phi: the contact solver
@@ -146,49 +147,134 @@ class Implicit(Adjoint):
             prep, x_n, v_n, q_n, t, activation, force, xs = res
             xbar = cts[0].x
             free = jnp.asarray(model.free_mask)
-            qs = rot.cold_start(deformation_gradient(model, prep.dminv, jnp.where(free > 0, xs, x_n)))
-            if q_n is None:
-                q_n = qs  # unread: the objective reads q_n only with stiffness damping
-
-            def residual(x, prep, x_n, v_n, q_n, activation, force):
-                evaluate, _ = step_objective(model, prep, x_n, v_n, q_n, activation, force, static=static)
-                return evaluate(x, qs)[1]
-
-            args = (prep, x_n, v_n, q_n, activation, force)
+            system = _StepSystem.at(model, prep, x_n, v_n, q_n, activation, force, xs, static=static)
+            q_n = system.q_n
             tol = self.tol if self.tol is not None else min(max(model.options.tol, 1e-10), 1e-5)
-            chart = model.method.implicit_chart(jax.lax.stop_gradient(prep.method), xs, free)
-            if chart is None:
-                factor = jax.lax.stop_gradient(prep.factor)
-                solver, pattern = model.linear_solver, model.pattern
-                # The per-tet stress derivative is assembled once; each CG iteration then
-                # costs gathers and a 9 x 9 product per tet (step_hessian).
-                hvp = step_hessian(model, prep, x_n, v_n, q_n, activation, force, xs, qs, static=static)
-                lam = _pcg(hvp, lambda r: solver.solve(pattern, factor, r), xbar * free, tol, self.max_iter)
-            else:
-                # Stationary in the chart's coordinates d (x = embed(d)): the reduced
-                # gradient J^T g, J = d embed/d d, vanishes; its Jacobian is the Hessian of
-                # Phi(embed(d)), symmetric. The cotangent maps to J^T xbar and back by J.
-                # That Hessian is J^T H J plus the chart's curvature weighted by the
-                # gradient g (nonzero on the bones: the joint forces).
-                embed, precondition, size = chart
-                zero = jnp.zeros(size, xs.dtype)
-                _, push = jax.linearize(embed, zero)
-                pull = jax.linear_transpose(push, zero)
-                hessian = step_hessian(model, prep, x_n, v_n, q_n, activation, force, xs, qs, static=static)
-                g = residual(xs, *args)
-                _, curvature = jax.linearize(lambda d: jax.vjp(embed, d)[1](g)[0], zero)
-
-                def hvp(d):
-                    return pull(hessian(push(d)))[0] + curvature(d)
-
-                lam = push(_pcg(hvp, precondition, pull(xbar)[0], tol, self.max_iter))
+            lam = system.push(_pcg(system.hvp, system.precondition, system.pull(xbar), tol, self.max_iter))
             ct_prep, ct_xn, ct_vn, ct_qn, ct_a, ct_f = step_gradient_vjp(
-                model, prep, x_n, v_n, q_n, activation, force, xs, qs, -lam, static=static)
+                model, prep, x_n, v_n, q_n, activation, force, xs, system.qs, -lam, static=static)
             ct_xn = ct_xn + xbar * (1.0 - free)  # fixed vertices: x* = x_n there
             return ct_prep, ct_xn, ct_vn, ct_qn, jnp.zeros_like(t), ct_a, ct_f
 
         solve.defvjp(solve_fwd, solve_bwd)
         return solve(prep, state.x, state.v, state.rot, state.t, activation, force)
+
+
+@dataclass(frozen=True)
+class ImplicitForward(Implicit):
+    """The implicit derivative of :class:`Implicit` in forward mode (``jax.jvp``,
+    ``jax.jacfwd``), for Jacobians with few inputs and many outputs (system
+    identification's Levenberg-Marquardt).
+
+    For a tangent ``theta_dot`` of the step inputs, the solution's tangent solves
+    ``H x_dot = -(d/dtheta grad_x Phi) theta_dot`` with the same Hessian product,
+    preconditioner, chart and tolerance rule (attributes as for :class:`Implicit`) as
+    the reverse mode's adjoint solve. Reverse mode (``jax.grad``) also runs, by JAX
+    transposing the tangent computation, but it keeps the linearisation of every step's
+    per-tet terms on the tape and reverses XLA's derivative of them: use
+    :class:`Implicit` there. (JAX lets one function carry a custom JVP or a custom VJP,
+    not both, so the two modes are two adjoints.)
+    """
+
+    def solve(self, model, prep, state, activation, force, *, static):
+
+        if model.obstacles:
+            # The contact solver's own implicit derivative is a custom JVP already.
+            return solve_step(model, prep, state, activation, force, static=static)
+
+        @jax.custom_jvp
+        def solve(prep, x_n, v_n, q_n, t, activation, force):
+            return solve_step(model, prep, State(x_n, v_n, q_n, t), activation, force, static=static)
+
+        @solve.defjvp
+        def solve_jvp(primals, tangents):
+            prep, x_n, v_n, q_n, t, activation, force = primals
+            sol, info = solve(*primals)
+            free = jnp.asarray(model.free_mask)
+            system = _StepSystem.at(model, prep, x_n, v_n, q_n, activation, force, sol.x, static=static)
+            args = (prep, x_n, v_n, q_n, activation, force)
+            dargs = tangents[:4] + tangents[5:]
+            _, dg = jax.jvp(lambda *a: system.residual(sol.x, *a), args, dargs)
+            tol = self.tol if self.tol is not None else min(max(model.options.tol, 1e-10), 1e-5)
+            # custom_linear_solve (H is symmetric) keeps the rule transposable for reverse mode.
+            d = jax.lax.custom_linear_solve(
+                system.hvp, system.pull(dg), lambda hvp, b: _pcg(hvp, system.precondition, b, tol, self.max_iter),
+                symmetric=True)
+            dx = -system.push(d) + tangents[1] * (1.0 - free)  # fixed vertices: x* = x_n there
+            zeros = jax.tree.map(_zero_tangent, (sol, info))
+            return (sol, info), (zeros[0]._replace(x=dx), zeros[1])
+
+        return solve(prep, state.x, state.v, state.rot, state.t, activation, force)
+
+
+def _zero_tangent(a):
+    """A zero tangent for ``a`` (``float0`` for integer and boolean arrays)."""
+    if jnp.issubdtype(jnp.result_type(a), jnp.inexact):
+        return jnp.zeros_like(a)
+    return np.zeros(np.shape(a), jax.dtypes.float0)
+
+
+class _StepSystem(NamedTuple):
+    """One step's stationarity system at its solution ``xs``, shared by both implicit modes.
+
+    With ``g(x; theta)`` the step gradient (zero at ``xs`` on the free vertices, or, with an
+    iteration method's chart ``x = embed(d)``, zero in the chart's coordinates ``d``),
+    ``push(hvp^-1 pull(b))`` applies the inverse of its Hessian to ``b`` ``(n, 3)``:
+    reverse mode applies it to a cotangent of ``xs``, forward mode to ``-dg/dtheta
+    theta_dot``. Without a chart, ``pull`` masks the fixed vertices and ``push`` is the
+    identity; ``precondition`` solves with the prefactored PD matrix (or the chart's own
+    preconditioner).
+    """
+
+    qs: Array  # (4, t) rotations of xs
+    q_n: Array  # the step-start rotations (xs's where the objective does not read them)
+    residual: Callable  # (x, prep, x_n, v_n, q_n, activation, force) -> g (n, 3)
+    hvp: Callable
+    precondition: Callable
+    pull: Callable  # (n, 3) -> system space
+    push: Callable  # system space -> (n, 3)
+
+    @classmethod
+    def at(cls, model, prep, x_n, v_n, q_n, activation, force, xs, *, static: bool) -> "_StepSystem":
+        """The system of the step from ``(x_n, v_n, q_n)`` whose solution is ``xs``
+        (``q_n`` may be ``None`` where the objective does not read it)."""
+
+        free = jnp.asarray(model.free_mask)
+        qs = rot.cold_start(deformation_gradient(model, prep.dminv, jnp.where(free > 0, xs, x_n)))
+        if q_n is None:
+            q_n = qs  # unread: the objective reads q_n only with stiffness damping
+
+        def residual(x, prep, x_n, v_n, q_n, activation, force):
+            evaluate, _ = step_objective(model, prep, x_n, v_n, q_n, activation, force, static=static)
+            return evaluate(x, qs)[1]
+
+        args = (prep, x_n, v_n, q_n, activation, force)
+        chart = model.method.implicit_chart(jax.lax.stop_gradient(prep.method), xs, free)
+        if chart is None:
+            factor = jax.lax.stop_gradient(prep.factor)
+            solver, pattern = model.linear_solver, model.pattern
+            # The per-tet stress derivative is assembled once; each CG iteration then
+            # costs gathers and a 9 x 9 product per tet (step_hessian).
+            hvp = step_hessian(model, prep, x_n, v_n, q_n, activation, force, xs, qs, static=static)
+            return cls(qs, q_n, residual, hvp, lambda r: solver.solve(pattern, factor, r),
+                       lambda b: b * free, lambda y: y)
+        # Stationary in the chart's coordinates d (x = embed(d)): the reduced gradient
+        # J^T g, J = d embed/d d, vanishes; its Jacobian is the Hessian of Phi(embed(d)),
+        # symmetric. Vectors of x map to the chart by J^T and back by J. That Hessian is
+        # J^T H J plus the chart's curvature weighted by the gradient g (nonzero on the
+        # bones: the joint forces).
+        embed, precondition, size = chart
+        zero = jnp.zeros(size, xs.dtype)
+        _, push = jax.linearize(embed, zero)
+        pull = jax.linear_transpose(push, zero)
+        hessian = step_hessian(model, prep, x_n, v_n, q_n, activation, force, xs, qs, static=static)
+        g = residual(xs, *args)
+        _, curvature = jax.linearize(lambda d: jax.vjp(embed, d)[1](g)[0], zero)
+
+        def hvp(d):
+            return pull(hessian(push(d)))[0] + curvature(d)
+
+        return cls(qs, q_n, residual, hvp, precondition, lambda b: pull(b)[0], push)
 
 
 def _pcg(matvec, precondition, b, tol, max_iter):
