@@ -70,31 +70,45 @@ def _open_gmsh_section(path: Path) -> str | None:
     return None
 
 
-def _read(path: Path, fmt: str) -> meshio.Mesh:
-    """Read ``path`` with meshio's reader for ``fmt``; a file that is not one is a MeshError."""
+def read_meshio(path: str | Path, remedy: str = _REWRITE) -> meshio.Mesh:
+    """Read a ``.msh`` or ``.vtu`` file with meshio, refusing one that is not a complete file.
+
+    Arguments:
+        path: an existing ``.msh`` or ``.vtu`` file.
+        remedy: how to get a good file again; ends each error message.
+
+    Returns:
+        The :class:`meshio.Mesh` as meshio's reader returns it.
+
+    Raises:
+        MeshError: on an unknown suffix, or a file that is empty, not of its suffix's
+            format, truncated or damaged (naming the gmsh section it ends inside).
+    """
+    path = Path(path)
+    fmt = _format(path)
     with path.open("rb") as f:
         head = f.read(64).lstrip(b"\xef\xbb\xbf \t\r\n")
     if not head:
-        raise MeshError(f"{path} is empty; {_REWRITE}")
+        raise MeshError(f"{path} is empty; {remedy}")
     if fmt == "gmsh" and not head.startswith(b"$MeshFormat"):
-        raise MeshError(f"{path} is not a gmsh .msh file (it does not start with $MeshFormat); {_REWRITE}")
+        raise MeshError(f"{path} is not a gmsh .msh file (it does not start with $MeshFormat); {remedy}")
     if fmt == "vtu" and not head.startswith(b"<"):
-        raise MeshError(f"{path} is not a VTK XML .vtu file (it does not start with an XML tag); {_REWRITE}")
+        raise MeshError(f"{path} is not a VTK XML .vtu file (it does not start with an XML tag); {remedy}")
     try:
         raw, error = _READERS[fmt](str(path)), None
     except _DAMAGED as err:
         raw, error = None, err
     except MemoryError as err:  # a damaged count asks for petabytes
         raise MeshError(f"{path}: reading it asked for more memory than there is ({err}); the file is "
-                        f"damaged, or too big for this machine: {_REWRITE}") from None
+                        f"damaged, or too big for this machine: {remedy}") from None
     # meshio reads a gmsh file that stops after a complete section, dropping the rest.
     section = _open_gmsh_section(path) if fmt == "gmsh" else None
     if section is not None:
-        raise MeshError(f"{path}: the file ends inside its ${section} section (truncated or damaged): {_REWRITE}")
+        raise MeshError(f"{path}: the file ends inside its ${section} section (truncated or damaged): {remedy}")
     if error is not None:
         kind = {"gmsh": "gmsh .msh", "vtu": "VTK .vtu"}[fmt]
         detail = f": {error}" if str(error) else ""
-        raise MeshError(f"{path} is not a complete {kind} file (truncated or damaged{detail}): {_REWRITE}")
+        raise MeshError(f"{path} is not a complete {kind} file (truncated or damaged{detail}): {remedy}")
     return raw
 
 
@@ -204,10 +218,10 @@ def load(path: str | Path) -> TetMesh:
             file with no tetrahedra.
     """
     path = Path(path)
-    fmt = _format(path)
+    _format(path)
     if not path.is_file():
         raise FileNotFoundError(f"no mesh file at {path}")
-    raw = _read(path, fmt)
+    raw = read_meshio(path)
     blocks = [i for i, c in enumerate(raw.cells) if c.type == "tetra"]
     if not blocks:
         raise MeshError(f"{path} has no tetrahedra (cell types: {[c.type for c in raw.cells]})")

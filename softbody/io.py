@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 import scipy.sparse
 
-from softbody.meshing.mesh import Region, boundary_faces
+from softbody.meshing.mesh import MeshError, Region, boundary_faces
 
 #: Name of the format stored in every result file, and its version.
 FORMAT = "softbody.result"
@@ -811,24 +811,34 @@ def read_vtu_series(pvd: str | os.PathLike) -> Result:
 
     Raises:
         FileNotFoundError: the ``.pvd`` or a frame it names is missing.
-        ResultError: the collection is empty, frames have no tets or different
-            topologies, or frame times are not evenly spaced.
+        ResultError: the ``.pvd``, ``series.json`` or a frame is truncated or damaged
+            (named in the message), the collection is empty, frames have no tets or
+            different topologies, or frame times are not evenly spaced.
     """
-    import meshio
+    from softbody.meshing.io import read_meshio
 
     pvd = Path(pvd)
     if not pvd.is_file():
         raise FileNotFoundError(f"no .pvd collection at {pvd}; write one with to_vtu_series")
-    sets = ET.parse(pvd).getroot().findall("./Collection/DataSet")
+    rewrite = "write the series again with to_vtu_series"
+    try:
+        sets = ET.parse(pvd).getroot().findall("./Collection/DataSet")
+    except ET.ParseError as err:
+        raise ResultError(f"{pvd} is not a complete .pvd collection (not well-formed XML: {err}): {rewrite}") from None
     if not sets:
         raise ResultError(f"{pvd} lists no DataSet entries")
     times = np.array([float(s.get("timestep", k)) for k, s in enumerate(sets)])
     frames = []
-    for s in sets:
+    for k, s in enumerate(sets):
         f = pvd.parent / s.get("file", "")
         if not f.is_file():
             raise FileNotFoundError(f"{pvd} names {f}, which does not exist")
-        frames.append(meshio.read(f))
+        if f.suffix.lower() != ".vtu":
+            raise ResultError(f"{pvd} names {f}, which is not a .vtu file; the frames of a series are .vtu files")
+        try:
+            frames.append(read_meshio(f, remedy=rewrite))
+        except MeshError as err:
+            raise ResultError(f"frame {k} of {pvd}: {err}") from None
     first = frames[0]
     tets = first.cells_dict.get("tetra")
     if tets is None:
@@ -841,7 +851,10 @@ def read_vtu_series(pvd: str | os.PathLike) -> Result:
     points = x[0] - disp if disp is not None else x[0]
     side = {}
     if (pvd.parent / _SERIES_JSON).is_file():
-        side = json.loads((pvd.parent / _SERIES_JSON).read_text())
+        try:
+            side = json.loads((pvd.parent / _SERIES_JSON).read_text())
+        except json.JSONDecodeError as err:
+            raise ResultError(f"{pvd.parent / _SERIES_JSON} is not valid JSON ({err}): {rewrite}") from None
     if "dt" in side:
         dt = float(side["dt"])
     elif len(times) > 1:

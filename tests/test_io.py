@@ -307,6 +307,40 @@ def test_vtu_series_round_trip(tmp_path):
     assert read_vtu_series(pvd).n_frames == 2
 
 
+def test_damaged_vtu_series_files_are_named(tmp_path):
+    pvd = to_vtu_series(box_result(frames=2), tmp_path / "vtu")
+    side = tmp_path / "vtu" / "series.json"
+    good_side = side.read_text()
+    side.write_text(good_side[: len(good_side) // 2])
+    with pytest.raises(ResultError, match=r"series\.json is not valid JSON \(.*\): write the series again "
+                                          "with to_vtu_series"):
+        read_vtu_series(pvd)
+    side.write_text(good_side)
+
+    good_pvd = pvd.read_bytes()
+    pvd.write_bytes(good_pvd[: len(good_pvd) // 2])
+    with pytest.raises(ResultError, match=r"series\.pvd is not a complete \.pvd collection \(not well-formed XML: "
+                                          r".*\): write the series again with to_vtu_series"):
+        read_vtu_series(pvd)
+    pvd.write_bytes(good_pvd)
+
+    frame = tmp_path / "vtu" / "frame_00001.vtu"
+    data = frame.read_bytes()
+    frame.write_bytes(data[: len(data) // 2])
+    with pytest.raises(ResultError, match=r"frame 1 of .*series\.pvd: .*frame_00001\.vtu is not a complete VTK "
+                                          r"\.vtu file \(truncated or damaged\): write the series again with "
+                                          "to_vtu_series"):
+        read_vtu_series(pvd)
+    frame.write_text("frame 1 was here\n")
+    with pytest.raises(ResultError, match=r"frame 1 of .*series\.pvd: .*frame_00001\.vtu is not a VTK XML \.vtu "
+                                          r"file \(it does not start with an XML tag\)"):
+        read_vtu_series(pvd)
+    frame.rename(frame.with_suffix(".vtk"))
+    pvd.write_text(pvd.read_text().replace("frame_00001.vtu", "frame_00001.vtk"))
+    with pytest.raises(ResultError, match=r"frame_00001\.vtk, which is not a \.vtu file"):
+        read_vtu_series(pvd)
+
+
 def test_xdmf_writes_and_reads_back(tmp_path):
     res = box_result(frames=3)
     path = to_xdmf(res, tmp_path / "traj.xdmf")
