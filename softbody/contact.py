@@ -103,6 +103,8 @@ from typing import Callable, ClassVar
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.sparse as sparse
+import scipy.sparse.linalg as splinalg
 from jaxtyping import Array, Float
 
 from softbody.solvers import LBFGS, IterationMethod, Solution, StepProblem
@@ -776,22 +778,18 @@ class ScaledDiagonal(Splitting):
         return float(np.max(2 * d / (mass / dt**2 + 2 * d)))
 
 
-def _pd_split(model, params):
-    """Free-vertex ``(mass (f,), L (f, f) scipy CSR, dt)`` of a compiled dynamic scene."""
-    from softbody.model import prepare
-
-    prep = prepare(model, params)
+def _pd_split(model, prep):
+    """Free-vertex ``(mass (f,), L (f, f) scipy CSR, dt)`` of a compiled dynamic scene and its
+    prepared data (:func:`softbody.model.prepare`)."""
     h = model.options.dt
     a = model.pattern.to_scipy(np.asarray(prep.data)).tocsr()
     mass = np.asarray(prep.mass)[:, 0]
     free = np.flatnonzero(np.asarray(model.free_mask)[:, 0] > 0)
-    import scipy.sparse as sparse
-
     stiffness = (a - sparse.diags(mass / h**2))[free][:, free].tocsr()
     return mass[free], stiffness, h
 
 
-def splitting_spectral_radius(model, params, splitting: Splitting) -> float:
+def splitting_spectral_radius(model, prep, splitting: Splitting) -> float:
     """Spectral radius of the splitting iteration matrix with the projections held fixed.
 
     ``rho((M/h^2 + D)^{-1} (D - L))`` over the free vertices, for the scene's PD matrix
@@ -800,22 +798,20 @@ def splitting_spectral_radius(model, params, splitting: Splitting) -> float:
     ``P^{-1/2} (D - L) P^{-1/2}``; dense ``eigvalsh`` below 500 vertices).
 
     Arguments:
-        model, params: a compiled dynamic scene (:func:`softbody.model.build`).
+        model, prep: a compiled dynamic scene (:func:`softbody.model.build`) and its
+            prepared data (:func:`softbody.model.prepare` of its params).
         splitting: the :class:`Splitting`.
 
     Returns:
         The spectral radius (< 1: the iteration converges).
     """
-    mass, stiffness, h = _pd_split(model, params)
+    mass, stiffness, h = _pd_split(model, prep)
     d = np.asarray(splitting.diagonal(jnp.asarray(stiffness.diagonal())[:, None]))[:, 0]
     return _spectral_radius(mass, stiffness, h, d)
 
 
 def _spectral_radius(mass, stiffness, h: float, d) -> float:
     """``rho((M/h^2 + diag(d))^{-1} (diag(d) - L))`` for free-vertex ``mass`` (f,), ``L`` (f, f)."""
-    import scipy.sparse as sparse
-    import scipy.sparse.linalg as splinalg
-
     scale = 1.0 / np.sqrt(mass / h**2 + d)
     s = sparse.diags(scale) @ (sparse.diags(d) - stiffness) @ sparse.diags(scale)
     if s.shape[0] < 500:

@@ -29,7 +29,9 @@ import numpy as np
 from softbody.elastic import deformation_gradient, scatter_stress, shape_gradients, strain_rate_damping
 from softbody import rotation as rot
 from softbody.model import Model, Params, State, prepare
-from softbody.objective import StepInfo, step_objective
+from softbody._types import StepInfo
+from softbody.objective import step_objective
+from softbody.skeleton import SkeletonContactPD, SkeletonPD
 from softbody.simulate import SimulationError, Trajectory, _activation, _check_controls
 
 Array = jax.Array
@@ -106,7 +108,7 @@ def explicit_rollout(model: Model, params: Params, state0: State, controls=None,
     if model.obstacles:
         raise ValueError("explicit_rollout has no contact handling: build the scene without obstacles, "
                          "or use softbody.simulate.rollout")
-    if model.options.method is not None and type(model.options.method).__name__ == "SkeletonPD":
+    if isinstance(model.method, (SkeletonPD, SkeletonContactPD)):
         raise ValueError("explicit_rollout has no joint constraints: use softbody.simulate.rollout for skeletons")
     controls, forces, n_steps = _check_controls(model, controls, forces, n_steps)
     xs, vs, bad = _explicit(model, params, state0, controls, forces, n_steps, model.options.dt)

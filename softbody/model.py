@@ -1,185 +1,32 @@
 """Scene compilation: ``TetMesh`` + materials + options -> static ``Model`` + traced ``Params``.
 
-* :class:`Model` is static: topology, fixed vertices, the sparsity pattern of the PD
-  matrix and the maps that assemble it, actuator layouts, solver choices. Changing it
-  recompiles. It is hashed by identity.
-* :class:`Params` is a pytree of everything differentiable: per-material Young's modulus,
-  Poisson's ratio, density and damping, rest-shape morph offsets, actuator design
-  parameters. Changing it does not recompile.
-* :class:`State` is the pytree ``(x, v, rot)``: positions and velocities ``(n, 3)`` and the
-  per-tet rotation (a unit quaternion ``(4, t)``) of ``x``, kept to warm-start the next
-  local step.
-
-Everything that depends on ``Params`` (rest-shape operators, volumes, masses, weights,
-the PD matrix and its factorisation) is computed once per rollout by :func:`prepare`.
+:func:`build` checks a scene and resolves its defaults once (the nonlinear iteration, the
+linear solver, the adjoint); :func:`prepare` computes everything that depends on
+``Params`` (rest-shape operators, volumes, masses, weights, the PD matrix and its
+factorisation), once per rollout; :func:`initial_state` makes a :class:`State`. The data
+types themselves live in :mod:`softbody._types`.
 """
 
 from __future__ import annotations
 
-import functools
-from dataclasses import dataclass, field
+import dataclasses
 from typing import Callable, Mapping, Sequence
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from softbody import linsolve, rotation
 from softbody._interfaces import Actuator, ElementActuator
+from softbody._types import Model, Options, Params, Prepared, SceneError, State
+from softbody.contact import ContactPD
+from softbody.elastic import deformation_gradient, local_matrices, rest_geometry
+from softbody.gradients import Implicit
 from softbody.material import Material, pd_weights
 from softbody.meshing import TetMesh
-from softbody.gradients import Adjoint, Implicit
-from softbody.solvers import LBFGS, IterationMethod
+from softbody.solvers import LBFGS
 
 Array = jax.Array
-
-
-class SceneError(ValueError):
-    """A scene description is invalid; the message names the problem and the fix."""
-
-
-@dataclass(frozen=True)
-class Options:
-    """Simulation options (static: changing them recompiles).
-
-    Attributes:
-        dt: time step, s (> 0).
-        gravity: acceleration, m/s^2, shape (3,).
-        tol: relative force-residual tolerance of each implicit step:
-            ``|g(x)| <= tol * |M s / h^2| + atol`` over free degrees of freedom, with ``g``
-            the gradient of the step's objective and ``s`` the inertial prediction (the
-            definition DiffPD uses, so iteration counts compare).
-        atol: absolute force tolerance, N.
-        max_iter: iteration cap per step; a step that hits it reports ``converged=False``.
-        method: the nonlinear iteration: :class:`~softbody.solvers.LBFGS` or
-            :class:`~softbody.solvers.LocalGlobal` (plain PD); ``None`` (default) picks
-            L-BFGS, or the contact solver when the scene has obstacles.
-        linear_solver: a :class:`~softbody.linsolve.LinearSolver`; ``None`` picks by size.
-        rotation_iterations: warm-started Newton steps of the rotation extraction per
-            local step.
-        adjoint: how gradients are taken: :class:`~softbody.gradients.Implicit` (default)
-            or :class:`~softbody.gradients.Unrolled`.
-    """
-
-    dt: float = 0.01
-    gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)
-    tol: float = 1e-4
-    atol: float = 1e-10
-    max_iter: int = 200
-    method: IterationMethod | None = None
-    linear_solver: linsolve.LinearSolver | None = None
-    rotation_iterations: int = 1
-    adjoint: Adjoint = field(default_factory=Implicit)
-
-    def __post_init__(self):
-        if not (np.isfinite(self.dt) and self.dt > 0):
-            raise SceneError(f"Options.dt = {self.dt!r}: the time step must be a positive number of seconds")
-        if self.dt > 0.1:
-            raise SceneError(f"Options.dt = {self.dt} s is too large to resolve any soft-body motion; use <= 0.1 s")
-        if not (self.tol > 0 and self.atol >= 0):
-            raise SceneError("Options.tol must be > 0 and Options.atol >= 0")
-        if int(self.max_iter) < 1:
-            raise SceneError("Options.max_iter must be >= 1")
-        if len(self.gravity) != 3 or not np.all(np.isfinite(self.gravity)):
-            raise SceneError(f"Options.gravity must be 3 finite numbers, got {self.gravity!r}")
-
-
-class Params(eqx.Module):
-    """Differentiable parameters (a pytree).
-
-    Attributes:
-        E, nu, density, alpha, beta: ``(n_materials,)`` per-material values (see
-            :class:`~softbody.material.Material`), in the order of ``Model.material_names``.
-        morph: ``(n, 3)`` rest-shape offsets added to the mesh's rest positions.
-        actuators: a tuple with one design-parameter pytree per actuator term.
-        obstacles: a tuple with one parameter pytree per obstacle (pose, friction, ...).
-    """
-
-    E: Array
-    nu: Array
-    density: Array
-    alpha: Array
-    beta: Array
-    morph: Array
-    actuators: tuple = ()
-    obstacles: tuple = ()
-
-
-class State(eqx.Module):
-    """Simulation state: positions ``x`` and velocities ``v`` ``(n, 3)``, rotations ``rot``
-    ``(4, t)`` (warm start of the local step) and the time ``t`` (s)."""
-
-    x: Array
-    v: Array
-    rot: Array
-    t: Array
-
-
-@dataclass(frozen=True, eq=False)
-class Model:
-    """Static description of a compiled scene. Build it with :func:`build`."""
-
-    mesh: TetMesh
-    options: Options
-    material_names: tuple[str, ...]
-    tet_material: np.ndarray  # (t,) int32 material index per tet
-    fixed: np.ndarray  # (k,) int32 fixed vertex indices
-    free_mask: np.ndarray  # (n, 1) float64: 1 on free vertices, 0 on fixed
-    pattern: linsolve.SparsityPattern
-    local_to_data: np.ndarray  # (t*16,) int32 into pattern data; nnz = dropped
-    diag_to_data: np.ndarray  # (n,) int32 positions of the diagonal entries
-    terms: tuple = ()  # actuator terms (see softbody.simulate for the term kinds)
-    channel_names: tuple[str, ...] = ()
-    obstacles: tuple = ()  # obstacle objects (see softbody.contact)
-    stiffness_damping: bool = False  # some material had beta > 0 at build time
-
-    @property
-    def n_vertices(self) -> int:
-        return self.mesh.n_vertices
-
-    @property
-    def n_tets(self) -> int:
-        return self.mesh.n_tets
-
-    @functools.cached_property
-    def corner_incidence(self) -> np.ndarray:
-        """``(n, K)`` int32: each vertex's tet corners (see :func:`softbody.elastic.corner_incidence`)."""
-        from softbody.elastic import corner_incidence
-
-        return corner_incidence(self.mesh.tets)
-
-    @property
-    def n_channels(self) -> int:
-        return len(self.channel_names)
-
-    @functools.cached_property
-    def channel_bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(lower, upper)``, each ``(n_channels,)``: the range of every control channel
-        (:meth:`softbody._interfaces.Actuator.channel_bounds`), in ``channel_names`` order."""
-        bounds = [term.channel_bounds() for term in self.terms]
-        if not bounds:
-            return np.zeros(0), np.zeros(0)
-        return (np.concatenate([np.asarray(lo, np.float64) for lo, _ in bounds]),
-                np.concatenate([np.asarray(hi, np.float64) for _, hi in bounds]))
-
-    @property
-    def method(self) -> IterationMethod:
-        """The nonlinear iteration in use (``options.method`` or the default for the scene)."""
-        if self.options.method is not None:
-            return self.options.method
-        if self.obstacles:
-            from softbody.contact import ContactPD
-
-            return ContactPD()
-        return LBFGS()
-
-    @property
-    def linear_solver(self) -> linsolve.LinearSolver:
-        return self.options.linear_solver or linsolve.auto_solver(self.pattern.n)
-
-    def __hash__(self):
-        return id(self)
 
 
 def _fixed_vertices(mesh: TetMesh, fixed) -> np.ndarray:
@@ -289,6 +136,11 @@ def build(
     if len(set(channels)) != len(channels):
         raise SceneError(f"actuator channel names must be unique, got {channels}")
 
+    options = dataclasses.replace(
+        options,
+        method=options.method if options.method is not None else (ContactPD() if obstacles else LBFGS()),
+        linear_solver=options.linear_solver or linsolve.auto_solver(pattern.n),
+        adjoint=options.adjoint if options.adjoint is not None else Implicit())
     model = Model(
         mesh=mesh, options=options, material_names=names, tet_material=tet_material,
         fixed=fixed_idx, free_mask=free.astype(np.float64)[:, None], pattern=pattern,
@@ -332,30 +184,9 @@ def initial_state(model: Model, params: Params | None = None, x=None, v=None) ->
             raise SceneError(f"initial {name} must have shape ({n}, 3), got {a.shape}")
         if not isinstance(a, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(a))):
             raise SceneError(f"initial {name} has non-finite values")
-    from softbody.elastic import deformation_gradient, rest_geometry
-
     dminv, _ = rest_geometry(model, params.morph if params is not None else jnp.zeros((n, 3)))
     f = deformation_gradient(model, dminv, x)
     return State(x=x, v=v, rot=rotation.cold_start(f), t=jnp.asarray(0.0))
-
-
-class Prepared(eqx.Module):
-    """Per-rollout quantities computed from ``Params`` by :func:`prepare` (differentiable)."""
-
-    dminv: Array  # (3, 3, t) inverse rest edge matrices
-    volume: Array  # (t,)
-    mass: Array  # (n, 1) lumped masses
-    mass_alpha: Array  # (n, 1) alpha-weighted lumped masses (mass damping)
-    w_s: Array  # (t,) corotated weight 2 mu
-    w_v: Array  # (t,) volume weight 3 lambda
-    w_b: Array  # (t,) stiffness damping weight beta * 2 mu
-    x_rest: Array  # (n, 3)
-    terms: tuple  # per-term prepared data
-    obstacles: tuple  # per-obstacle parameters (Params.obstacles)
-    data: Array  # (nnz,) PD matrix values
-    factor: object  # linear-solver factor
-    inertia: Array  # scalar: 1/h^2 for dynamics, 0 for statics
-    method: object = None  # the iteration method's per-rollout data (IterationMethod.prepare)
 
 
 def prepare(model: Model, params: Params, *, static: bool = False) -> Prepared:
@@ -368,8 +199,6 @@ def prepare(model: Model, params: Params, *, static: bool = False) -> Prepared:
     only the initial Hessian and a softer volume weight approximates the bending
     stiffness better. Differentiable in ``params``; call it once per rollout.
     """
-    from softbody.elastic import local_matrices, rest_geometry
-
     h = model.options.dt
     dminv, volume = rest_geometry(model, params.morph)
     mat = jnp.asarray(model.tet_material)

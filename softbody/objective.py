@@ -6,7 +6,7 @@ adjoint (:mod:`softbody.gradients`) are built on :func:`step_objective`.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Callable, NamedTuple
+from typing import Callable, NamedTuple
 
 import equinox as eqx
 import jax
@@ -16,22 +16,11 @@ from softbody import rotation as rot
 from softbody._interfaces import ElementActuator, VertexActuator, VolumeActuator
 from softbody.elastic import (corotated, deformation_gradient, scatter_stress, strain_rate_damping,
                               stress_derivative_product)
+from softbody._types import Model, Prepared, State, StepInfo
 from softbody.solvers import Solution, StepProblem
-
-if TYPE_CHECKING:
-    from softbody.model import Model, Prepared, State
 
 Array = jax.Array
 
-
-class StepInfo(eqx.Module):
-    """Per-step solver statistics (arrays; stacked over steps in a rollout)."""
-
-    iterations: Array
-    evaluations: Array
-    residual: Array  # |grad Phi| / (|M s / h^2| + atol / tol): the relative residual reached
-    converged: Array
-    inverted: Array  # number of inverted (det F <= 0) tets at the step's end
 
 
 

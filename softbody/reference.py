@@ -39,7 +39,8 @@ from softbody import rotation as rot
 from softbody._interfaces import ElementActuator, VertexActuator, VolumeActuator
 from softbody.elastic import corotated, deformation_gradient, shape_gradients, strain_rate_damping
 from softbody.model import Model, Params, Prepared, SceneError, State, initial_state, prepare
-from softbody.objective import StepInfo, step_objective
+from softbody._types import StepInfo
+from softbody.objective import step_objective
 from softbody.simulate import SimulationError, Trajectory, _activation, _check_controls
 
 Array = jax.Array

@@ -46,9 +46,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from softbody._types import Model, Params, Prepared, SceneError, State, StepInfo
+from softbody.elastic import deformation_gradient
 from softbody.gradients import segment_length
-from softbody.model import Model, Params, Prepared, SceneError, State, prepare
-from softbody.objective import StepInfo
+from softbody.model import initial_state, prepare
+from softbody.rotation import det3
 
 Array = jax.Array
 
@@ -66,9 +68,6 @@ _FIXES = ("Lower the load or the activations, refine the mesh where it deforms m
 
 def _inverted(model: Model, prep: Prepared, x) -> Array:
     """Number of tets with ``det F <= 0`` at positions ``x`` ``(n, 3)``."""
-    from softbody.elastic import deformation_gradient
-    from softbody.rotation import det3
-
     return jnp.sum(det3(deformation_gradient(model, prep.dminv, x)) <= 0)
 
 
@@ -302,8 +301,6 @@ def solve_static(model: Model, params: Params, force=None, activation=None, x0=N
 
 @functools.partial(jax.jit, static_argnums=0)
 def _solve_static(model, params, force, activation, x0):
-    from softbody.model import initial_state
-
     prep = prepare(model, params, static=True)
     state = initial_state(model, params, x=x0)
     sol, info = model.options.adjoint.solve(model, prep, state, activation, force, static=True)

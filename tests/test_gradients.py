@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from softbody.actuators.muscle import Muscle
-from softbody.gradients import Implicit, Unrolled, check_grad
+from softbody.gradients import Implicit, ImplicitForward, Unrolled, central_difference, check_grad
 from softbody.material import Material
 from softbody.meshing import Region, examples
 from softbody.model import Options, State, build, initial_state
@@ -109,6 +109,47 @@ def test_modes_agree(gradients):
         assert np.linalg.norm(a - b) <= 1e-6 * np.linalg.norm(b), k
 
 
+FORWARD_KINDS = ("logE", "density", "v0", "activation", "force")
+
+
+@pytest.fixture(scope="module")
+def forward_jacobian(gradients):
+    """``jax.jacfwd`` through :class:`ImplicitForward` of the loss along one random unit
+    direction per parameter kind (a Jacobian with one column per kind), with those
+    directions' central differences of the Unrolled forward (converged to round-off, see
+    :func:`_with_reference_values`) and the reverse-mode (Implicit) derivatives."""
+    loss, theta = _problem(ImplicitForward())
+    reference = jax.jit(_problem(Unrolled())[0])
+    rng = np.random.default_rng(7)
+    directions = []
+    for kind in FORWARD_KINDS:
+        d = {k: jnp.zeros_like(v) for k, v in theta.items()}
+        d[kind] = jnp.asarray(rng.standard_normal(np.shape(theta[kind])))
+        d[kind] = d[kind] / jnp.linalg.norm(d[kind])
+        directions.append(d)
+
+    def along(c):
+        return loss(jax.tree.map(lambda t, *ds: t + sum(ci * di for ci, di in zip(c, ds)), theta, *directions))
+
+    jac = np.asarray(jax.jit(jax.jacfwd(along))(jnp.zeros(len(FORWARD_KINDS))))
+    fd = np.array([central_difference(reference, theta, d, 3e-5) for d in directions])
+    g = gradients["Implicit"][1]
+    rev = np.array([sum(float(jnp.sum(g[k] * d[k])) for k in theta) for d in directions])
+    return jac, fd, rev
+
+
+@pytest.mark.parametrize("index", range(len(FORWARD_KINDS)), ids=FORWARD_KINDS)
+def test_forward_implicit_jacobian_matches_finite_differences(forward_jacobian, index):
+    jac, fd, _ = forward_jacobian
+    assert abs(fd[index]) > 1e-8, "the loss does not depend on this parameter: the check would be vacuous"
+    assert abs(jac[index] - fd[index]) <= 1e-6 * abs(fd[index]), (jac[index], fd[index])
+
+
+def test_forward_implicit_agrees_with_reverse_implicit(forward_jacobian):
+    jac, _, rev = forward_jacobian
+    np.testing.assert_allclose(jac, rev, rtol=1e-8, atol=0)
+
+
 def _tiny(adjoint, **material):
     from softbody.meshing.grid import grid_box
 
@@ -122,7 +163,7 @@ def test_jacfwd_unrolled_matches_grad():
     model, params, s0 = _tiny(Unrolled())
 
     def tip(log_e):
-        p = type(params)(**{**params.__dict__, "E": jnp.exp(log_e)})
+        p = params.replace(E=jnp.exp(log_e))
         return rollout(model, p, s0, n_steps=3).x[-1, :, 2].sum()
 
     x = jnp.log(params.E)
@@ -135,7 +176,7 @@ def test_vmap_of_grad_over_two_parameter_sets():
     model, params, s0 = _tiny(Implicit())
 
     def tip(log_e):
-        p = type(params)(**{**params.__dict__, "E": jnp.exp(log_e)})
+        p = params.replace(E=jnp.exp(log_e))
         return rollout(model, p, s0, n_steps=3).x[-1, :, 2].sum()
 
     batch = jnp.stack([jnp.log(params.E), jnp.log(params.E) + 0.5])

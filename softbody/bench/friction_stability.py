@@ -192,7 +192,7 @@ def run(out: Path, quick: bool) -> dict:
                 iterate = _iterations(model, n_plain)
                 for young in youngs:
                     params = eqx.tree_at(lambda p: p.E, params, jnp.full_like(params.E, young))
-                    mass, stiffness, h = _pd_split(model, params)
+                    mass, stiffness, h = _pd_split(model, prepare(model, params))
                     d_l = stiffness.diagonal()
                     d = np.asarray(splitting.diagonal(jnp.asarray(d_l)[:, None]))[:, 0]
                     case = {
