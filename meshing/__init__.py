@@ -8,7 +8,7 @@ Build a solid from primitives and booleans, name its parts, mesh it::
 
     body = sm.Box((0.09, 0.02, 0.02), center=(0.045, 0, 0))
     chamber = sm.Cavity(sm.Box((0.07, 0.014, 0.006), center=(0.045, 0, 0.004)), "chamber")
-    mesh = sm.mesh(body - chamber, size=0.004, select={"fixed": sm.Plane("x", 0.0)})
+    mesh = sm.mesh(body - chamber, size=0.004, select={"fixed": sm.OnPlane("x", 0.0)})
     print(sm.quality_report(mesh))
     sm.save(mesh, "finger.msh")
 
@@ -29,7 +29,7 @@ from .geometry import (
     Cavity,
     Cylinder,
     InBox,
-    Plane,
+    OnPlane,
     Selection,
     Shape,
     Sphere,
@@ -62,7 +62,7 @@ from .surface import (
 __all__ = [
     "MeshError", "Region", "TetMesh", "boundary_faces", "signed_volumes", "grid_box",
     "Shape", "Box", "Cylinder", "Sphere", "Capsule", "CAD", "Tag", "Cavity",
-    "Plane", "InBox", "Selection", "mesh", "select_regions", "DEFAULT_MIN_QUALITY",
+    "OnPlane", "InBox", "Selection", "mesh", "select_regions", "DEFAULT_MIN_QUALITY",
     "QualityReport", "RegionSummary", "quality_report", "check_quality", "gamma",
     "dihedral_angles", "enclosed_volume",
     "save", "load",

@@ -9,16 +9,16 @@ Usage::
 
 A geometry script is a Python file defining ``geometry()``, which returns a
 :class:`softbody.meshing.Shape`, and optionally ``selections()``, which returns a dict
-of region name -> selection (e.g. ``{"fixed": Plane("x", 0.0)}``)::
+of region name -> selection (e.g. ``{"fixed": OnPlane("x", 0.0)}``)::
 
-    from softbody.meshing import Box, Cavity, Plane
+    from softbody.meshing import Box, Cavity, OnPlane
 
     def geometry():
         return Box((0.1, 0.02, 0.02), center=(0.05, 0, 0)) - Cavity(
             Box((0.06, 0.01, 0.005), center=(0.05, 0, 0.004)), "chamber")
 
     def selections():
-        return {"fixed": Plane("x", 0.0)}
+        return {"fixed": OnPlane("x", 0.0)}
 
 The command prints the quality report and the meshing time and writes the mesh
 (``.msh`` or ``.vtu``, see :mod:`softbody.meshing.io`); it never overwrites a file

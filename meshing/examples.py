@@ -15,7 +15,7 @@ from typing import Callable
 
 import numpy as np
 
-from .geometry import DEFAULT_MIN_QUALITY, Box, Cavity, Cylinder, Plane, Sphere, Tag, mesh
+from .geometry import DEFAULT_MIN_QUALITY, Box, Cavity, Cylinder, OnPlane, Sphere, Tag, mesh
 from .mesh import MeshError, TetMesh
 
 
@@ -31,7 +31,7 @@ def cantilever(length: float = 0.32, width: float = 0.08, height: float = 0.08, 
     """
     body = Box((length, width, height), center=(length / 2, 0.0, 0.0))
     return mesh(body, size, min_quality=min_quality,
-                select={"fixed": Plane("x", 0.0), "tip": Plane("x", length)})
+                select={"fixed": OnPlane("x", 0.0), "tip": OnPlane("x", length)})
 
 
 def finger(length: float = 0.09, width: float = 0.02, height: float = 0.02, *,
@@ -59,7 +59,7 @@ def finger(length: float = 0.09, width: float = 0.02, height: float = 0.02, *,
     body = Box((length, width, height), center=(length / 2, 0.0, 0.0))
     chamber = Box((cx_hi - cx_lo, cw, cz_hi - cz_lo), center=((cx_lo + cx_hi) / 2, 0.0, (cz_lo + cz_hi) / 2))
     return mesh(body - Cavity(chamber, "chamber"), size, min_quality=min_quality,
-                select={"fixed": Plane("x", 0.0), "tip": Plane("x", length)})
+                select={"fixed": OnPlane("x", 0.0), "tip": OnPlane("x", length)})
 
 
 #: Leg names of :func:`quadruped` and the signs (x, y) of their corners: front = +x, left = +y.
@@ -102,7 +102,7 @@ def quadruped(body_length: float = 0.2, body_width: float = 0.1, body_height: fl
         bone = Box((bone_width, bone_width, bone_hi - bone_lo), (x, y, (bone_lo + bone_hi) / 2))
         shape = (shape + leg + Tag(bone, f"bone:leg_{name}")).mark(f"muscle:leg_{name}", below_body - bone)
         muscles[name] = f"muscle:leg_{name}"
-    m = mesh(shape, size, min_quality=min_quality, select={"feet": Plane("z", 0.0)})
+    m = mesh(shape, size, min_quality=min_quality, select={"feet": OnPlane("z", 0.0)})
     fibres = np.tile([1.0, 0.0, 0.0], (m.n_tets, 1))
     for region in muscles.values():
         fibres[m.regions[region].tets] = [0.0, 0.0, 1.0]
@@ -139,7 +139,7 @@ def caterpillar(n_segments: int = 5, segment_length: float = 0.03, width: float 
     top = Box((length, width, height / 2), center=(length / 2, 0.0, (zmid + z1) / 2))
     bottom = Box((length, width, height / 2), center=(length / 2, 0.0, (z0 + zmid) / 2))
     shape = shape.mark("muscle:top", top).mark("muscle:bottom", bottom)
-    m = mesh(shape, size, min_quality=min_quality, select={"belly": Plane("z", z0)})
+    m = mesh(shape, size, min_quality=min_quality, select={"belly": OnPlane("z", z0)})
     return _with_fibres(m, np.tile([1.0, 0.0, 0.0], (m.n_tets, 1)))
 
 
@@ -150,7 +150,7 @@ def cube(edge: float = 0.05, *, clearance: float = 0.001, size: float = 0.0125,
     Regions: ``"bottom"`` (vertices and faces of the lowest face).
     """
     body = Box(edge, center=(0.0, 0.0, clearance + edge / 2))
-    return mesh(body, size, min_quality=min_quality, select={"bottom": Plane("z", clearance)})
+    return mesh(body, size, min_quality=min_quality, select={"bottom": OnPlane("z", clearance)})
 
 
 def ball(radius: float = 0.05, *, clearance: float = 0.001, size: float = 0.01,

@@ -20,9 +20,9 @@ Names for the simulator (they become :class:`~softbody.meshing.Region` s of the 
 - ``body - Cavity(shape, "chamber")``: cut a cavity; its wall triangles, oriented into
   the cavity, and their vertices form the region ``"cavity:chamber"``. A cavity must be
   subtracted (appear on the right of ``-``).
-- Boundary selections are given to :func:`mesh`: ``select={"fixed": Plane("x", 0.0)}``
+- Boundary selections are given to :func:`mesh`: ``select={"fixed": OnPlane("x", 0.0)}``
   makes the vertices on the plane x = 0 (and the surface triangles among them) the
-  region ``"fixed"``. See :class:`Plane`, :class:`InBox`.
+  region ``"fixed"``. See :class:`OnPlane`, :class:`InBox`.
 
 Regions may overlap. The same tag name used twice names the union of its pieces.
 
@@ -30,7 +30,7 @@ Example::
 
     body = Box((0.1, 0.02, 0.02), center=(0.05, 0, 0))
     chamber = Cavity(Box((0.07, 0.012, 0.006), center=(0.05, 0, 0.005)), "chamber")
-    m = mesh(body - chamber, size=0.004, select={"fixed": Plane("x", 0.0)})
+    m = mesh(body - chamber, size=0.004, select={"fixed": OnPlane("x", 0.0)})
 """
 
 from __future__ import annotations
@@ -386,7 +386,7 @@ class _Marked(Shape):
 
 
 @dataclass(frozen=True)
-class Plane:
+class OnPlane:
     """Select the vertices on the plane ``dot(p, axis) == value``.
 
     Arguments:
@@ -400,7 +400,7 @@ class Plane:
     tol: float | None = None
 
     def __call__(self, points: np.ndarray, scale: float) -> np.ndarray:
-        n = np.array(_vec(self.axis, "Plane axis", unit=True))
+        n = np.array(_vec(self.axis, "OnPlane axis", unit=True))
         tol = 1e-6 * scale if self.tol is None else self.tol
         return np.abs(points @ n - self.value) <= tol
 
@@ -424,7 +424,7 @@ class InBox:
         return np.all((points >= lo - tol) & (points <= hi + tol), axis=1)
 
 
-#: A selection: :class:`Plane`, :class:`InBox`, or any ``f(points (n, 3), scale) -> (n,) bool``
+#: A selection: :class:`OnPlane`, :class:`InBox`, or any ``f(points (n, 3), scale) -> (n,) bool``
 #: where ``scale`` is the mesh's bounding-box diagonal (for tolerances).
 Selection = Callable[[np.ndarray, float], np.ndarray]
 
@@ -437,7 +437,7 @@ def select_regions(mesh: TetMesh, select: Mapping[str, Selection]) -> TetMesh:
 
     Arguments:
         mesh: the mesh.
-        select: region name -> selection (:class:`Plane`, :class:`InBox` or a callable).
+        select: region name -> selection (:class:`OnPlane`, :class:`InBox` or a callable).
 
     Returns:
         A new :class:`TetMesh` with the regions added.
@@ -487,7 +487,7 @@ def mesh(
         size: target element edge length in metres.
         sizes: region name -> local edge length, for tagged regions (``"bone:spine"``) and
             cavities (``"cavity:chamber"``, applied on its walls).
-        select: region name -> boundary selection (:class:`Plane`, :class:`InBox`, callable).
+        select: region name -> boundary selection (:class:`OnPlane`, :class:`InBox`, callable).
         min_quality: refuse meshes whose worst tet has gamma quality below this
             (0 accepts any non-inverted mesh). A first mesh below it is optimised once
             more (Netgen's optimiser, then gmsh's) before being refused.

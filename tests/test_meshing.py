@@ -20,7 +20,7 @@ from softbody.meshing import (
     Cylinder,
     InBox,
     MeshError,
-    Plane,
+    OnPlane,
     Sphere,
     Tag,
     TetMesh,
@@ -129,7 +129,7 @@ def test_transforms_move_tags_and_cavities():
 
 def test_selections_and_local_sizes():
     shape = Box((0.1, 0.02, 0.02), (0.05, 0, 0)) + Tag(Box(0.02, (0.08, 0, 0)), "bone:end")
-    coarse = mesh(shape, size=0.008, select={"fixed": Plane("x", 0.0), "top": InBox((0, -1, 0.01), (1, 1, 1))})
+    coarse = mesh(shape, size=0.008, select={"fixed": OnPlane("x", 0.0), "top": InBox((0, -1, 0.01), (1, 1, 1))})
     fixed = coarse.region("fixed")
     assert np.allclose(coarse.points[fixed.vertices, 0], 0.0)
     assert len(fixed.faces) and np.all(np.isin(fixed.faces, fixed.vertices))
@@ -158,7 +158,7 @@ def test_bad_sizes_and_selections_are_refused():
     with pytest.raises(MeshError, match=r"unknown region 'bone:x'.*\['bone:b'\]"):
         mesh(Box(0.1) + Tag(Box(0.02), "bone:b"), size=0.02, sizes={"bone:x": 0.01})
     with pytest.raises(MeshError, match="matched no vertex"):
-        mesh(Box(0.1), size=0.02, select={"fixed": Plane("x", 1.0)})
+        mesh(Box(0.1), size=0.02, select={"fixed": OnPlane("x", 1.0)})
     with pytest.raises(MeshError, match="positive"):
         mesh(Box(0.1), size=0.0)
 
@@ -327,11 +327,11 @@ def test_cli_unknown_target_lists_examples(capsys):
 def test_cli_geometry_script(tmp_path, capsys):
     script = tmp_path / "robot.py"
     script.write_text(
-        "from softbody.meshing import Box, Cavity, Plane\n"
+        "from softbody.meshing import Box, Cavity, OnPlane\n"
         "def geometry():\n"
         "    return Box((0.1, 0.02, 0.02), (0.05, 0, 0)) - Cavity(Box((0.05, 0.01, 0.01), (0.05, 0, 0)), 'c')\n"
         "def selections():\n"
-        "    return {'fixed': Plane('x', 0.0)}\n")
+        "    return {'fixed': OnPlane('x', 0.0)}\n")
     out = tmp_path / "robot.vtu"
     assert cli.main(["mesh", str(script), "--size", "0.005", "-o", str(out)]) == 0
     text = capsys.readouterr().out

@@ -14,7 +14,7 @@ from softbody.meshing import (
     Box,
     InBox,
     MeshError,
-    Plane,
+    OnPlane,
     Region,
     TetMesh,
     ball,
@@ -302,7 +302,7 @@ def test_step_file_is_meshed_in_metres(tmp_path):
         gmsh.write(str(path))
     finally:
         gmsh.finalize()
-    m = mesh_file(path, 0.01, select={"fixed": Plane("x", 0.0)})
+    m = mesh_file(path, 0.01, select={"fixed": OnPlane("x", 0.0)})
     assert m.volumes().sum() == pytest.approx(0.1 * 0.05 * 0.02, rel=1e-9)
     assert np.allclose(m.points.max(axis=0), [0.1, 0.05, 0.02])
     with pytest.raises(MeshError, match="STL/OBJ files only"):
