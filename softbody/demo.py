@@ -126,7 +126,7 @@ def arm_mesh(size: float):
         (x = L) and ``"muscle:<band>"`` for the bands in :data:`BANDS` (each tet lies in one
         vertical and one horizontal band).
     """
-    from softbody.meshing import Box, Plane, mesh
+    from softbody.meshing import Box, OnPlane, mesh
 
     body = Box((ARM_LENGTH, ARM_WIDTH, ARM_HEIGHT), center=(ARM_LENGTH / 2, 0.0, 0.0))
     for name, (side_y, side_z) in BANDS.items():
@@ -134,7 +134,7 @@ def arm_mesh(size: float):
                   ARM_HEIGHT / 2 if side_z else ARM_HEIGHT)
         centre = (ARM_LENGTH / 2, side_y * ARM_WIDTH / 4, side_z * ARM_HEIGHT / 4)
         body = body.mark(f"muscle:{name}", Box(extent, center=centre))
-    return mesh(body, size, select={"fixed": Plane("x", 0.0), "tip": Plane("x", ARM_LENGTH)})
+    return mesh(body, size, select={"fixed": OnPlane("x", 0.0), "tip": OnPlane("x", ARM_LENGTH)})
 
 
 def control_basis(steps: int, knots: int) -> np.ndarray:
