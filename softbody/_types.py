@@ -7,7 +7,8 @@ module that builds or steps a scene.
 
 * :class:`Model` is static: topology, fixed vertices, the sparsity pattern of the PD
   matrix and the maps that assemble it, actuator layouts, solver choices. Changing it
-  recompiles. It is hashed by identity.
+  recompiles. It is compared and hashed by content, so an identical scene built again
+  reuses the compiled programs.
 * :class:`Params` is a pytree of everything differentiable: per-material Young's modulus,
   Poisson's ratio, density and damping, rest-shape morph offsets, actuator design
   parameters. Changing it does not recompile.
@@ -20,6 +21,8 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import equinox as eqx
@@ -140,9 +143,45 @@ class State(eqx.Module):
     t: Array
 
 
+def _update(h, obj) -> None:
+    """Feed ``obj``'s content into the hash ``h``: arrays by dtype, shape and bytes,
+    dataclasses by type and fields, containers item by item. Any other object counts by
+    identity (a model holding it equals only models holding the same object), so that
+    nothing unknown can make two different scenes compare equal."""
+    if obj is None or isinstance(obj, (bool, int, float, complex, str, bytes)):
+        h.update(f"{type(obj).__name__}:{obj!r};".encode())
+    elif isinstance(obj, (np.ndarray, np.generic, jax.Array)) and not isinstance(obj, jax.core.Tracer):
+        a = np.ascontiguousarray(np.asarray(obj))
+        h.update(f"array:{a.dtype.str}:{a.shape};".encode())
+        h.update(a.tobytes())
+    elif isinstance(obj, (tuple, list)):
+        h.update(f"{type(obj).__name__}:{len(obj)}(".encode())
+        for item in obj:
+            _update(h, item)
+        h.update(b")")
+    elif isinstance(obj, Mapping):
+        h.update(f"mapping:{len(obj)}(".encode())
+        for key in sorted(obj, key=repr):
+            _update(h, key)
+            _update(h, obj[key])
+        h.update(b")")
+    elif dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        h.update(f"{type(obj).__module__}.{type(obj).__qualname__}(".encode())
+        for f in dataclasses.fields(obj):
+            h.update(f.name.encode())
+            _update(h, getattr(obj, f.name))
+        h.update(b")")
+    else:
+        h.update(f"object:{type(obj).__qualname__}:{id(obj)};".encode())
+
+
 @dataclass(frozen=True, eq=False)
 class Model:
-    """Static description of a compiled scene. Build it with :func:`build`."""
+    """Static description of a compiled scene. Build it with :func:`~softbody.model.build`.
+
+    Compared and hashed by content (:attr:`digest`), so rebuilding an identical scene
+    reuses the compiled programs of the first (``jax.jit`` caches on static arguments).
+    """
 
     mesh: TetMesh
     options: Options
@@ -195,8 +234,20 @@ class Model:
         """The linear solver in use (resolved by :func:`~softbody.model.build`)."""
         return self.options.linear_solver
 
+    @functools.cached_property
+    def digest(self) -> str:
+        """A digest of the model's content (arrays by their bytes; see ``_update``): two
+        models built from equal scenes have equal digests."""
+        h = hashlib.sha256()
+        for f in dataclasses.fields(self):
+            _update(h, getattr(self, f.name))
+        return h.hexdigest()
+
     def __hash__(self):
-        return id(self)
+        return hash(self.digest)
+
+    def __eq__(self, other):
+        return self is other or (type(other) is type(self) and self.digest == other.digest)
 
 
 class Prepared(eqx.Module):

@@ -1,0 +1,63 @@
+"""Scene data types: build resolves defaults once, models compare by content, Params
+replace and check their fields."""
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from softbody.contact import ContactPD, Plane
+from softbody.gradients import Implicit, Unrolled
+from softbody.linsolve import DenseCholesky
+from softbody.material import Material
+from softbody.meshing.grid import grid_box
+from softbody.model import Options, SceneError, build, initial_state
+from softbody.simulate import _rollout, rollout
+from softbody.solvers import LBFGS, LocalGlobal
+
+MESH = grid_box((0.04, 0.01, 0.01), (4, 1, 1))
+
+
+def _build(**kwargs):
+    return build(MESH, Material(E=1e5, nu=0.3), fixed="xmin", **kwargs)
+
+
+def test_build_resolves_defaults_once():
+    model, _ = _build()
+    assert isinstance(model.options.method, LBFGS) and model.method is model.options.method
+    assert isinstance(model.options.adjoint, Implicit)
+    assert model.options.linear_solver is not None and model.linear_solver is model.options.linear_solver
+    contact, _ = build(MESH, Material(), obstacles=[Plane()])
+    assert isinstance(contact.method, ContactPD)
+    chosen = Options(method=LocalGlobal(), adjoint=Unrolled(), linear_solver=DenseCholesky())
+    model, _ = _build(options=chosen)
+    assert model.options == chosen  # what the user chose is kept as given
+
+
+def test_models_compare_by_content_and_share_compiled_code():
+    a, params = _build()
+    b, _ = _build()
+    assert a is not b and a == b and hash(a) == hash(b)
+    assert a != _build(options=Options(dt=0.02))[0]
+    assert a == build(MESH, Material(E=2e5, nu=0.3), fixed="xmin")[0]  # E is a Param: no recompile
+    other = dataclasses.replace(MESH, points=MESH.points * 1.01)
+    assert a != build(other, Material(E=1e5, nu=0.3), fixed="xmin")[0]
+    assert a != build(MESH, Material(E=1e5, nu=0.3), fixed="xmax")[0]
+    rollout(a, params, initial_state(a, params), n_steps=2)
+    size = _rollout._cache_size()
+    rollout(b, params, initial_state(b, params), n_steps=2)
+    assert _rollout._cache_size() == size  # the rebuilt scene reused the compiled rollout
+
+
+def test_params_replace():
+    _, params = _build()
+    doubled = params.replace(E=params.E * 2)
+    np.testing.assert_array_equal(doubled.E, params.E * 2)
+    np.testing.assert_array_equal(doubled.nu, params.nu)
+    with pytest.raises(SceneError, match=r"no field\(s\) \['young'\]; its fields are"):
+        params.replace(young=1.0)
+    with pytest.raises(SceneError, match="Params.nu has shape"):
+        params.replace(nu=jnp.ones(3))
+    with pytest.raises(SceneError, match=r"Params.morph must be \(n, 3\)"):
+        params.replace(morph=jnp.zeros(5))
