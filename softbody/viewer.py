@@ -1,10 +1,11 @@
 """Browser viewer (viser): play back a result, or drive a live simulation with sliders.
 
 :func:`view` serves a result: the deformed surface moves along a timeline (slider,
-play/pause, speed, loop), coloured by strain, displacement, activation, a per-vertex field
-or region, with a legend; obstacles, skeleton segments, region geometry (chambers,
-muscles) and the loss curve of an optimisation are shown. :func:`view_live` calls a step
-function on a timer while sliders set the actuator controls.
+play/pause, speed, loop), opening on the frame that moved farthest from frame 0 and
+playing in a loop ("Play" pauses), coloured by strain, displacement, activation, a
+per-vertex field or region, with a legend; obstacles, skeleton segments, region geometry
+(chambers, muscles) and the loss curve of an optimisation are shown. :func:`view_live`
+calls a step function on a timer while sliders set the actuator controls.
 
 viser draws a mesh in one colour, so the surface is split into colour levels: every
 triangle takes the level of the mean of its vertices' values (flat shading), and one mesh
@@ -235,6 +236,25 @@ def _frame_camera(server: viser.ViserServer, lo: np.ndarray, hi: np.ndarray) -> 
     server.initial_camera.far = radius * 1000
 
 
+def start_frame(result: Result) -> int:
+    """The frame a result opens on: the one whose surface moved farthest from frame 0.
+
+    Frame 0 is usually the rest shape (uniform colours, nothing moved), so opening there
+    looks as if nothing happened; the most displaced frame shows the motion at once.
+
+    Arguments:
+        result: the result.
+
+    Returns:
+        The index of the frame with the largest vertex displacement from frame 0 over the
+        surface vertices (0 for a single frame or a body that never moves).
+    """
+    used = np.unique(result.surface)
+    rest = result.x[0, used]
+    moved = [float(np.linalg.norm(x[used] - rest, axis=1).max()) for x in result.x]  # one frame at a time
+    return int(np.argmax(moved))
+
+
 def _rotation_to(direction: Sequence[float]) -> np.ndarray:
     """wxyz quaternion of a rotation taking +z to ``direction``."""
     d = np.asarray(direction, float) / np.linalg.norm(direction)
@@ -292,6 +312,10 @@ class _ServerViewer:
     def __init__(self, host: str, port: int, faces: np.ndarray):
         self.server = viser.ViserServer(host=host, port=port, label="softbody", verbose=False)
         self.server.gui.configure_theme(control_width="medium", show_share_button=False)
+        # Docked, the panel takes its own column and the canvas shrinks to the space left of
+        # it, so the initial camera frames the body in the visible part of the page (a
+        # floating panel covers the canvas's right quarter, where a wide body reaches).
+        self.server.gui.main_panel.dock_right()
         self.host = host
         self.port = self.server.get_port()
         shown = "127.0.0.1" if host in ("0.0.0.0", "::", "") else host
@@ -335,6 +359,9 @@ class _ServerViewer:
 class PlaybackViewer(_ServerViewer):
     """A result served in the browser. Made by :func:`view`.
 
+    It opens on :func:`start_frame` (the most displaced frame) and plays in a loop at real
+    time; ``playing = False`` or the page's "Play" box pauses.
+
     Attributes:
         server: the :class:`viser.ViserServer`.
         url: address to open in a browser.
@@ -362,22 +389,22 @@ class PlaybackViewer(_ServerViewer):
         if result.skeleton is not None and result.skeleton.shape[1]:
             self.bones = self.server.scene.add_line_segments(
                 "/skeleton", result.skeleton[0].astype(np.float32), _BONE, thickness=0.012 * float(np.max(hi - lo)))
-        self._build_gui(options, color_by)
+        self._build_gui(options, color_by, start_frame(result))
         self._mode = color_by
-        self._show(0)
+        self._show(self.frame)
         self._start_thread(self._play_loop)
 
     # ----------------------------------------------------------------- GUI
 
-    def _build_gui(self, options: list[str], color_by: str) -> None:
+    def _build_gui(self, options: list[str], color_by: str, frame: int) -> None:
         r, gui = self.result, self.server.gui
         gui.add_markdown(f"**softbody** result: {r.n_vertices} vertices, {len(r.tets)} tets, "
                          f"{r.n_frames} frames of {r.dt:g} s")
         with gui.add_folder("Playback"):
             self.gui["clock"] = gui.add_markdown("")
-            self.gui["frame"] = gui.add_slider("Frame", min=0, max=max(r.n_frames - 1, 1), step=1, initial_value=0,
-                                               disabled=r.n_frames == 1)
-            self.gui["play"] = gui.add_checkbox("Play", initial_value=False, disabled=r.n_frames == 1)
+            self.gui["frame"] = gui.add_slider("Frame", min=0, max=max(r.n_frames - 1, 1), step=1,
+                                               initial_value=frame, disabled=r.n_frames == 1)
+            self.gui["play"] = gui.add_checkbox("Play", initial_value=r.n_frames > 1, disabled=r.n_frames == 1)
             self.gui["speed"] = gui.add_slider("Speed (x real time)", min=0.05, max=4.0, step=0.05, initial_value=1.0)
             self.gui["loop"] = gui.add_checkbox("Loop", initial_value=True)
         with gui.add_folder("Colour"):
@@ -450,6 +477,18 @@ class PlaybackViewer(_ServerViewer):
         self.gui["frame"].value = k % T
 
     @property
+    def playing(self) -> bool:
+        """Whether the timeline plays (the "Play" box); a result opens playing when it has
+        more than one frame. Setting it starts or pauses playback in every open page; once
+        it is set to ``False`` the frame no longer changes by itself."""
+        return bool(self.gui["play"].value)
+
+    @playing.setter
+    def playing(self, on: bool) -> None:
+        with self._lock:  # the play loop advances under this lock: no step lands after a pause
+            self.gui["play"].value = bool(on) and self.result.n_frames > 1
+
+    @property
     def color_by(self) -> str:
         """The colouring shown; one of the options in the GUI's "Colour by" list."""
         return self._mode
@@ -505,21 +544,22 @@ class PlaybackViewer(_ServerViewer):
         while not self._stop.wait(1 / 60):
             now = time.perf_counter()
             elapsed, last = now - last, now
-            if not self.gui["play"].value:
-                continue
-            if self.frame != shown:  # the user moved the slider: continue from there
-                clock = self.frame * dt
-            clock += elapsed * self.gui["speed"].value
-            k = int(clock / dt + 1e-9)
-            if k >= T:
-                if self.gui["loop"].value:
-                    clock, k = clock % (T * dt), int(clock % (T * dt) / dt)
-                else:
-                    self.gui["play"].value = False
-                    k = T - 1
-            if k != self.frame:
-                self.gui["frame"].value = k
-            shown = k
+            with self._lock:
+                if not self.gui["play"].value:
+                    continue
+                if self.frame != shown:  # the user moved the slider: continue from there
+                    clock = self.frame * dt
+                clock += elapsed * self.gui["speed"].value
+                k = int(clock / dt + 1e-9)
+                if k >= T:
+                    if self.gui["loop"].value:
+                        clock, k = clock % (T * dt), int(clock % (T * dt) / dt)
+                    else:
+                        self.gui["play"].value = False
+                        k = T - 1
+                if k != self.frame:
+                    self.gui["frame"].value = k
+                shown = k
 
 
 class LiveViewer(_ServerViewer):

@@ -10,13 +10,14 @@ import argparse
 import time
 from pathlib import Path
 
+import imageio.v3 as iio
 import numpy as np
 import pytest
 from cdp import CHROMIUM, Chromium
 from test_io import box_result
 
-from softbody.io import ResultError
-from softbody.viewer import LiveViewer, PlaybackViewer, run, view, view_live
+from softbody.io import Result, ResultError
+from softbody.viewer import LiveViewer, PlaybackViewer, run, start_frame, view, view_live
 
 SIZE = (960, 640)
 
@@ -70,6 +71,8 @@ def lift_step(rest):
 @pytest.mark.browser
 def test_playback_in_browser(browser, playback):
     assert playback.server.get_host() == "127.0.0.1" and playback.url.startswith("http://127.0.0.1:")
+    playback.playing = False  # a result opens playing; these checks want still frames
+    playback.frame = 0
     page = browser.new_page()
     try:
         page.navigate(playback.url)
@@ -121,6 +124,8 @@ def test_live_in_browser(browser):
 def test_playback_server_state(playback):
     res = playback.result
     assert isinstance(playback, PlaybackViewer)
+    playback.playing = False
+    playback.frame = 0
     opts = list(playback.gui["color_by"].options)
     assert opts == ["strain", "displacement", "activation", "pressure", "regions", "none"]
     for mode in opts:
@@ -206,4 +211,109 @@ def test_minimal_result_and_bad_colouring():
     with view(res, port=0, block=False, color_by=None) as viewer:
         assert list(viewer.gui["color_by"].options) == ["strain", "displacement", "regions", "none"]
         assert viewer.gui["frame"].disabled and viewer.color_by == "none"
+        assert not viewer.playing and viewer.frame == 0
+        viewer.playing = True  # one frame: nothing to play
+        assert not viewer.playing
         assert "frame 0 / 0" in viewer.gui["clock"].content
+
+
+def test_result_opens_playing_on_its_most_displaced_frame():
+    res = box_result(frames=4, with_extras=False)
+    x = res.x.copy()
+    x[2, :, 2] += 0.3  # frame 2 lifted far above the others
+    res = Result(res.points, res.tets, res.surface, x, dt=1.0)  # a frame a second at real time
+    assert start_frame(res) == 2
+    assert start_frame(Result(res.points, res.tets, res.surface, res.x[:1], dt=1.0)) == 0
+    with view(res, port=0, block=False, color_by=None) as viewer:
+        assert viewer.playing and viewer.gui["loop"].value and viewer.frame == 2
+        viewer.playing = False
+        held = viewer.frame
+        time.sleep(1.2)
+        assert viewer.frame == held, "the timeline moved after a pause"
+        viewer.gui["speed"].value = 4.0
+        viewer.playing = True
+        deadline = time.monotonic() + 5
+        while viewer.frame == held and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert viewer.frame != held, "playback did not resume"
+
+
+def differs(a, b, threshold=60.0):
+    """Mask of pixels (whole page) whose colour differs between two screenshots by more than
+    ``threshold`` in some channel; 60 ignores the body's shadow on the floor (at most ~48)."""
+    return np.abs(a.astype(float) - b.astype(float)).max(axis=-1) > threshold
+
+
+PANEL_BOX = """(() => {
+  const panel = [...document.querySelectorAll('[data-dock-region], [data-floating-window]')]
+    .find(e => e.innerText.includes('softbody result'));
+  const canvas = document.querySelector('canvas');
+  if (!panel || !canvas) return null;
+  const p = panel.getBoundingClientRect(), c = canvas.getBoundingClientRect();
+  return {panel: [p.left, p.top, p.right, p.bottom], canvas: [c.left, c.top, c.right, c.bottom]};
+})()"""
+
+
+@pytest.mark.browser
+def test_result_opens_moving_beside_the_panel(browser, tmp_path):
+    """At 1280 x 800 a result file opens with the body moving, framed left of the GUI panel."""
+    path = box_result(frames=40).save(tmp_path / "result.npz")  # 0.4 s of bending, looped
+    viewer = view(path, port=0, block=False)
+    page = browser.new_page()
+    try:
+        page.send("Emulation.setDeviceMetricsOverride", width=1280, height=800, deviceScaleFactor=1, mobile=False)
+        page.navigate(viewer.url)
+        page.wait_for_text("softbody result")
+        page.wait_for_text("frame ")
+        assert page.evaluate("[innerWidth, innerHeight]") == [1280, 800]
+        boxes = page.evaluate(PANEL_BOX)
+        assert boxes is not None, "no control panel or canvas in the page"
+        (pl, pt, pr, pb), (cl, ct, cr, cb) = ([int(round(v)) for v in boxes[k]] for k in ("panel", "canvas"))
+        free = (cl, min(cr, pl))  # columns of the canvas that the panel leaves uncovered
+
+        # (a) Playback runs without a click: the picture keeps changing and so does the frame
+        # number. Two changes in a row, so that the body first appearing is not taken for motion.
+        shots, frames, moves = [page.screenshot()], [], 0
+        deadline = time.monotonic() + 20
+        while moves < 2:
+            if time.monotonic() > deadline:
+                pytest.fail(f"the body did not move on its own ({moves} changes in 20 s): playback did not start")
+            time.sleep(0.3)
+            shots.append(page.screenshot())
+            frames.append(page.evaluate("document.body.innerText.match(/frame (\\d+) \\//)?.[1]"))
+            moving = differs(shots[-1][:, free[0]:free[1]], shots[-2][:, free[0]:free[1]], 30.0)
+            moves = moves + 1 if moving.mean() > 0.002 else 0
+        assert len(set(frames[-2:])) == 2, f"the page's frame number did not advance: {frames}"
+        assert viewer.playing and viewer.gui["loop"].value
+
+        # (b) Paused (the camera is still the initial one), with the panel hidden but keeping its
+        # place, so that a body behind a floating panel would show: where is the body drawn?
+        viewer.playing = False
+        page.evaluate("document.querySelectorAll('[data-dock-region], [data-floating-window]')"
+                      ".forEach(e => { e.style.visibility = 'hidden'; })")
+        shown = screenshot_when(page, lambda img: scene(img).std() > 10, "the paused frame")
+        viewer.body.set_visible(False)
+        background = screenshot_when(page, lambda img: differs(img, shown).mean() > 0.01, "the body to disappear")
+        viewer.body.set_visible(True)
+        back = screenshot_when(page, lambda img: differs(img, background).mean() > 0.01, "the body to return")
+        for name, img in {"playing0": shots[-2], "playing1": shots[-1], "paused": shown,
+                          "background": background}.items():
+            iio.imwrite(tmp_path / f"{name}.png", img)
+        body = differs(shown, background) & differs(back, background)  # ignores UI that changed meanwhile
+        assert body.mean() > 0.02, f"the body covers only {body.mean():.2%} of the page"
+        hidden = body[pt:pb, pl:pr].sum() / body.sum()
+        assert hidden < 0.02, f"the control panel covers {hidden:.0%} of the body"
+        rows, cols = np.flatnonzero(body.any(axis=1)), np.flatnonzero(body.any(axis=0))
+        assert cols[0] > free[0] + 2 and cols[-1] < free[1] - 2 and rows[0] > ct + 2 and rows[-1] < cb - 2, \
+            f"the body (columns {cols[0]}-{cols[-1]}, rows {rows[0]}-{rows[-1]}) is cut off by the free " \
+            f"part of the canvas (columns {free[0]}-{free[1]}, rows {ct}-{cb})"
+        offset = ((cols[0] + cols[-1]) / 2 - sum(free) / 2) / (free[1] - free[0])
+        assert abs(offset) < 0.1, f"the body's centre is {offset:+.0%} of the free width off its centre"
+        # The motion seen in (a) was the body's: the changed pixels lie in its columns.
+        moved = differs(shots[-1], shots[-2], 30.0)[:, free[0]:free[1]]
+        span = np.zeros(moved.shape[1], bool)
+        span[max(cols[0] - 50 - free[0], 0):cols[-1] + 50 - free[0]] = True
+        assert moved[:, span].sum() > 0.9 * moved.sum(), "the picture changed away from the body"
+    finally:
+        page.close()
+        viewer.stop()
