@@ -30,7 +30,8 @@ import numpy as np
 import optax
 
 from softbody.model import Model, Params, State, initial_state, prepare
-from softbody.simulate import Trajectory, step
+from softbody._types import RESULTS
+from softbody.simulate import Trajectory, _first_failure, _inverted, _Messages, _raise_failure, _step_templates, step
 
 from .errors import ControlError
 from .losses import Loss, centroid_weights, region_vertices
@@ -152,7 +153,7 @@ def _check_policy(model: Model, policy, observations: Observations) -> None:
 
 
 def policy_rollout(model: Model, params: Params, policy, observations: Observations, n_steps: int,
-                   state0: State | None = None) -> tuple[Trajectory, Array]:
+                   state0: State | None = None, *, throw: bool = True) -> tuple[Trajectory, Array]:
     """Simulate ``n_steps`` with the policy in the loop.
 
     Arguments:
@@ -161,6 +162,9 @@ def policy_rollout(model: Model, params: Params, policy, observations: Observati
         observations: the :class:`Observations` it reads.
         n_steps: the number of steps (>= 1).
         state0: the initial state (default: the rest shape).
+        throw: raise for the first step whose result is not success (see
+            :func:`softbody.simulate.rollout`, the same messages); ``False`` returns the
+            codes in ``trajectory.info.result`` instead.
 
     Returns:
         ``(trajectory, controls)``: the :class:`~softbody.simulate.Trajectory` and the
@@ -168,30 +172,40 @@ def policy_rollout(model: Model, params: Params, policy, observations: Observati
 
     Raises:
         ControlError: ``n_steps < 1``, or a policy output of the wrong shape.
-        jax.errors.JaxRuntimeError: the simulation became non-finite (an ``equinox``
-            runtime error naming it).
+        softbody.simulate.SimulationError: with ``throw=True``, a step stopped at the
+            iteration cap, became non-finite or inverted more tets than ``state0`` had;
+            traced (inside :func:`train_policy`'s gradient) the same message is raised at
+            run time as an equinox error.
     """
     if int(n_steps) < 1:
         raise ControlError(f"n_steps must be >= 1, got {n_steps}")
     state0 = initial_state(model, params) if state0 is None else state0
     _check_policy(model, policy, observations)
-    return _policy_rollout(model, params, policy, observations, int(n_steps), state0)
+    traj, controls, failed, branch = _policy_rollout(model, params, policy, observations, int(n_steps), state0)
+    if not throw:
+        return traj, controls
+    return _raise_failure((traj, controls), failed, branch,
+                          _Messages(_step_templates(model, "policy_rollout"), int(n_steps)))
 
 
 @eqx.filter_jit
 def _policy_rollout(model, params, policy, observations, n_steps, state0):
     prep = prepare(model, params)
+    inverted0 = _inverted(model, prep, state0.x)
 
-    def body(state, _):
+    def body(carry, _):
+        state, bad = carry
         a = policy(observations(state, state0))
         new, info = step(model, prep, state, a)
-        return new, (new.x, new.v, info, a)
+        finite = jnp.all(jnp.isfinite(new.x)) & jnp.all(jnp.isfinite(new.v)) & jnp.isfinite(info.residual)
+        result = RESULTS.of(finite=finite, converged=info.converged, inverted=info.inverted, inverted0=inverted0)
+        info = eqx.tree_at(lambda i: i.result, info, jnp.where(bad, int(RESULTS.nonfinite), result).astype(jnp.int32))
+        return (new, bad | ~finite), (new.x, new.v, info, a)
 
-    _, (xs, vs, info, controls) = jax.lax.scan(body, state0, None, length=n_steps)
-    xs = eqx.error_if(xs, ~(jnp.all(jnp.isfinite(xs)) & jnp.all(jnp.isfinite(vs))),
-                      "softbody: the closed-loop simulation became non-finite (NaN/inf)")
+    _, (xs, vs, info, controls) = jax.lax.scan(body, (state0, jnp.asarray(False)), None, length=n_steps)
+    failed, branch = _first_failure(info.result, xs, vs)
     traj = Trajectory(x=jnp.concatenate([state0.x[None], xs]), v=jnp.concatenate([state0.v[None], vs]), info=info)
-    return traj, controls
+    return traj, controls, failed, branch
 
 
 @dataclass

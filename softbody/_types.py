@@ -20,6 +20,7 @@ module that builds or steps a scene.
 from __future__ import annotations
 
 import dataclasses
+import enum
 import functools
 import hashlib
 from collections.abc import Mapping
@@ -53,7 +54,9 @@ class Options:
             the gradient of the step's objective and ``s`` the inertial prediction (the
             definition DiffPD uses, so iteration counts compare).
         atol: absolute force tolerance, N.
-        max_iter: iteration cap per step; a step that hits it reports ``converged=False``.
+        max_iter: iteration cap per step; a step that hits it reports ``converged=False``
+            and ``result == RESULTS.max_iterations``, which ``rollout`` raises unless
+            called with ``throw=False``.
         method: the nonlinear iteration: :class:`~softbody.solvers.LBFGS` or
             :class:`~softbody.solvers.LocalGlobal` (plain PD); ``None`` (default) lets
             :func:`~softbody.model.build` pick L-BFGS, or the contact solver when the scene
@@ -269,6 +272,52 @@ class Prepared(eqx.Module):
     method: object = None  # the iteration method's per-rollout data (IterationMethod.prepare)
 
 
+class RESULTS(enum.IntEnum):
+    """How a step (or static solve) ended: the codes in :attr:`StepInfo.result`.
+
+    * ``success`` (0): the step met its tolerance.
+    * ``max_iterations`` (1): it stopped at the iteration cap (``Options.max_iter``)
+      without meeting its tolerance (``Options.tol``); ``StepInfo.residual`` holds the
+      relative residual it reached.
+    * ``nonfinite`` (2): the positions, the velocities or the force residual became NaN or
+      inf. In a rollout every later step carries this code too (the state is not
+      advanced past it).
+    * ``inverted`` (3): the step ended with more inverted tets (``det F <= 0``) than the
+      initial state had (``StepInfo.inverted`` holds the count).
+
+    A step with several of these reports the first in the order inverted, nonfinite,
+    max_iterations (inverted tets usually cause the rest). Codes are plain integers:
+    ``traj.info.result == RESULTS.max_iterations`` works on the arrays.
+    """
+
+    success = 0
+    max_iterations = 1
+    nonfinite = 2
+    inverted = 3
+
+    @property
+    def message(self) -> str:
+        """A one-line description of the code."""
+        return _RESULT_MESSAGES[self]
+
+    @staticmethod
+    def of(*, finite, converged, inverted, inverted0) -> Array:
+        """The int32 code of steps (elementwise): ``inverted`` where ``inverted > inverted0``,
+        else ``nonfinite`` where not ``finite``, else ``max_iterations`` where not
+        ``converged``, else ``success``."""
+        code = jnp.where(converged, int(RESULTS.success), int(RESULTS.max_iterations))
+        code = jnp.where(finite, code, int(RESULTS.nonfinite))
+        return jnp.where(inverted > inverted0, int(RESULTS.inverted), code).astype(jnp.int32)
+
+
+_RESULT_MESSAGES = {
+    RESULTS.success: "the step met its tolerance",
+    RESULTS.max_iterations: "the step stopped at the iteration cap (Options.max_iter) without meeting its tolerance",
+    RESULTS.nonfinite: "the state or the force residual became non-finite (NaN/inf)",
+    RESULTS.inverted: "the step ended with more inverted tets (det F <= 0) than the initial state had",
+}
+
+
 class StepInfo(eqx.Module):
     """Per-step solver statistics (arrays; stacked over steps in a rollout)."""
 
@@ -277,3 +326,4 @@ class StepInfo(eqx.Module):
     residual: Array  # |grad Phi| / (|M s / h^2| + atol / tol): the relative residual reached
     converged: Array
     inverted: Array  # number of inverted (det F <= 0) tets at the step's end
+    result: Array  # int32 RESULTS code: how the step ended

@@ -29,10 +29,10 @@ import numpy as np
 from softbody.elastic import deformation_gradient, scatter_stress, shape_gradients, strain_rate_damping
 from softbody import rotation as rot
 from softbody.model import Model, Params, State, prepare
-from softbody._types import StepInfo
+from softbody._types import RESULTS, StepInfo
 from softbody.objective import step_objective
 from softbody.skeleton import SkeletonContactPD, SkeletonPD
-from softbody.simulate import SimulationError, Trajectory, _activation, _check_controls
+from softbody.simulate import Trajectory, _Messages, _activation, _check_controls, _first_failure, _raise_failure
 
 Array = jax.Array
 
@@ -83,7 +83,7 @@ def _explicit(model: Model, params: Params, state0: State, controls, forces, n_s
 
 
 def explicit_rollout(model: Model, params: Params, state0: State, controls=None, forces=None,
-                     n_steps: int | None = None) -> Trajectory:
+                     n_steps: int | None = None, *, throw: bool = True) -> Trajectory:
     """``n_steps`` semi-implicit Euler steps of size ``model.options.dt`` (one ``lax.scan``).
 
     Arguments:
@@ -93,17 +93,22 @@ def explicit_rollout(model: Model, params: Params, state0: State, controls=None,
         controls: ``(n_steps, n_channels)`` activations, or ``None``.
         forces: ``(n_steps, n, 3)`` external forces in newtons, or ``None``.
         n_steps: number of steps (taken from controls/forces when omitted).
+        throw: raise :class:`~softbody.simulate.SimulationError` for the first non-finite
+            step (the default); ``False`` returns the trajectory with the codes instead.
 
     Returns:
         A :class:`~softbody.simulate.Trajectory` with ``x, v`` of shape ``(n_steps + 1, n, 3)``
         (the first row is ``state0``); its ``info`` records one force evaluation and zero
-        solver iterations per step (``residual`` 0, ``converged`` True).
+        solver iterations per step (``residual`` 0, ``converged`` True, ``inverted`` not
+        counted: 0) and ``result`` ``RESULTS.nonfinite`` from the first non-finite step
+        on (the state is held there), ``RESULTS.success`` before it.
 
     Raises:
         SceneError: bad control or force shapes.
         ValueError: a scene with obstacles or a skeleton method.
-        SimulationError: the state became non-finite (the step exceeded the stability
-            limit, see :func:`critical_time_step`); names the first bad step.
+        SimulationError: with ``throw=True``, the state became non-finite (the step
+            exceeded the stability limit, see :func:`critical_time_step`); names the first
+            bad step. Traced, the same message is raised at run time as an equinox error.
     """
     if model.obstacles:
         raise ValueError("explicit_rollout has no contact handling: build the scene without obstacles, "
@@ -112,17 +117,18 @@ def explicit_rollout(model: Model, params: Params, state0: State, controls=None,
         raise ValueError("explicit_rollout has no joint constraints: use softbody.simulate.rollout for skeletons")
     controls, forces, n_steps = _check_controls(model, controls, forces, n_steps)
     xs, vs, bad = _explicit(model, params, state0, controls, forces, n_steps, model.options.dt)
-    bad = np.asarray(bad)
-    if bad.any():
-        k = int(np.argmax(bad))
-        raise SimulationError(
-            f"step {k}: the explicit state became non-finite at dt = {model.options.dt:g} s; the "
-            f"step exceeds the stability limit (softbody.explicit.critical_time_step gives it): "
-            "reduce dt or use the implicit softbody.simulate.rollout")
     zeros = jnp.zeros(n_steps)
     info = StepInfo(iterations=zeros.astype(int), evaluations=jnp.ones(n_steps, int), residual=zeros,
-                    converged=jnp.ones(n_steps, bool), inverted=zeros.astype(int))
-    return Trajectory(x=xs, v=vs, info=info)
+                    converged=jnp.ones(n_steps, bool), inverted=zeros.astype(int),
+                    result=jnp.where(bad, int(RESULTS.nonfinite), int(RESULTS.success)).astype(jnp.int32))
+    traj = Trajectory(x=xs, v=vs, info=info)
+    if not throw:
+        return traj
+    unstable = (f"step {{step}}: the explicit state became non-finite at dt = {model.options.dt:g} s; the step "
+                "exceeds the stability limit (softbody.explicit.critical_time_step gives it): reduce dt or use "
+                "the implicit softbody.simulate.rollout")
+    failed, branch = _first_failure(info.result, xs[1:], vs[1:])
+    return _raise_failure(traj, failed, branch, _Messages((unstable,) * 5, n_steps))
 
 
 def critical_time_step(model: Model, params: Params, x=None, iterations: int = 300) -> float:

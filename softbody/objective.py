@@ -16,7 +16,7 @@ from softbody import rotation as rot
 from softbody._interfaces import ElementActuator, VertexActuator, VolumeActuator
 from softbody.elastic import (corotated, deformation_gradient, scatter_stress, strain_rate_damping,
                               stress_derivative_product)
-from softbody._types import Model, Prepared, State, StepInfo
+from softbody._types import RESULTS, Model, Prepared, State, StepInfo
 from softbody.solvers import Solution, StepProblem
 
 Array = jax.Array
@@ -243,7 +243,10 @@ def solve_step(model: Model, prep: Prepared, state: State, activation, force, *,
     threshold = opts.tol * scale + opts.atol
     sol = model.method.run(problem, x0, state.rot, threshold, opts.max_iter, unrolled)
     inverted = jnp.sum(rot.det3(deformation_gradient(model, prep.dminv, sol.x)) <= 0)
+    inverted0 = jnp.sum(rot.det3(deformation_gradient(model, prep.dminv, state.x)) <= 0)
+    converged = sol.gnorm <= threshold
+    finite = jnp.all(jnp.isfinite(sol.x)) & jnp.isfinite(sol.gnorm)
     info = StepInfo(iterations=sol.iterations, evaluations=sol.evaluations,
-                    residual=sol.gnorm / (scale + opts.atol / opts.tol),
-                    converged=sol.gnorm <= threshold, inverted=inverted)
+                    residual=sol.gnorm / (scale + opts.atol / opts.tol), converged=converged, inverted=inverted,
+                    result=RESULTS.of(finite=finite, converged=converged, inverted=inverted, inverted0=inverted0))
     return sol, info

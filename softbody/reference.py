@@ -39,7 +39,7 @@ from softbody import rotation as rot
 from softbody._interfaces import ElementActuator, VertexActuator, VolumeActuator
 from softbody.elastic import corotated, deformation_gradient, shape_gradients, strain_rate_damping
 from softbody.model import Model, Params, Prepared, SceneError, State, initial_state, prepare
-from softbody._types import StepInfo
+from softbody._types import RESULTS, StepInfo
 from softbody.objective import step_objective
 from softbody.simulate import SimulationError, Trajectory, _activation, _check_controls
 
@@ -366,7 +366,9 @@ def newton_rollout(model: Model, params: Params, state0: State, n_steps: int | N
         A :class:`~softbody.simulate.Trajectory`: ``x, v`` of shape ``(n_steps + 1, n, 3)``
         (the first row is ``state0``) and per-step :class:`~softbody.objective.StepInfo`
         (``iterations``: Newton iterations; ``evaluations``: objective evaluations, line
-        search included; every step converged, or an error was raised).
+        search included; every step converged, or an error was raised; ``result`` is
+        ``RESULTS.inverted`` where a step ended with more inverted tets than ``state0``,
+        which is reported, not raised, else ``RESULTS.success``).
 
     Raises:
         SceneError: bad control or force shapes.
@@ -387,9 +389,12 @@ def newton_rollout(model: Model, params: Params, state0: State, n_steps: int | N
         vs.append(state.v)
         stats.append(step_stats)
     iters, evals, residuals = (jnp.asarray(c) for c in zip(*stats))
-    inverted = jax.vmap(lambda x: jnp.sum(rot.det3(deformation_gradient(model, prep.dminv, x)) <= 0))(jnp.stack(xs[1:]))
-    info = StepInfo(iterations=iters, evaluations=evals, residual=residuals,
-                    converged=jnp.ones(n_steps, bool), inverted=inverted)
+    count = jax.vmap(lambda x: jnp.sum(rot.det3(deformation_gradient(model, prep.dminv, x)) <= 0))
+    inverted = count(jnp.stack(xs[1:]))
+    converged = jnp.ones(n_steps, bool)
+    result = RESULTS.of(finite=converged, converged=converged, inverted=inverted, inverted0=count(state0.x[None])[0])
+    info = StepInfo(iterations=iters, evaluations=evals, residual=residuals, converged=converged,
+                    inverted=inverted, result=result)
     return Trajectory(x=jnp.stack(xs), v=jnp.stack(vs), info=info)
 
 

@@ -7,7 +7,13 @@ One step from ``(x_n, v_n)`` with time step ``h`` minimises::
 with the inertial prediction ``s = x_n + h v_n + h^2 (g + M^-1 f_ext)``, ``E`` the elastic
 and actuator energies and ``D`` the strain-rate damping; then ``v_{n+1} = (x_{n+1} - x_n)/h``.
 The step stops when ``|grad Phi| <= tol |M s / h^2| + atol`` over the free degrees of
-freedom or after ``max_iter`` iterations, and reports its iteration count and residual.
+freedom or after ``max_iter`` iterations, and reports its iteration count, residual and
+result code (:class:`~softbody._types.RESULTS`: success, max_iterations, nonfinite,
+inverted). :func:`rollout` and :func:`solve_static` raise :class:`SimulationError` for
+any step that did not succeed unless called with ``throw=False``; then the codes are in
+``info.result``. The message is the same whether the call is traced (under an outer
+``jax.jit`` or ``jax.grad``, where ``equinox.branched_error_if`` raises it at run time)
+or not.
 
 Actuator terms (``model.terms``) come in three kinds, one base class each
 (:mod:`softbody._interfaces`):
@@ -39,6 +45,7 @@ optional ``(n_steps, n, 3)`` array in newtons.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import equinox as eqx
@@ -46,7 +53,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from softbody._types import Model, Params, Prepared, SceneError, State, StepInfo
+from softbody._types import RESULTS, Model, Params, Prepared, SceneError, State, StepInfo
 from softbody.elastic import deformation_gradient
 from softbody.gradients import segment_length
 from softbody.model import initial_state, prepare
@@ -56,8 +63,11 @@ Array = jax.Array
 
 
 class SimulationError(RuntimeError):
-    """The simulation produced non-finite values or inverted tets; the message names the
-    step, the quantity and the actuator activations there."""
+    """A step failed (:class:`~softbody._types.RESULTS`): it stopped at the iteration cap,
+    became non-finite or inverted tets. The message names the first failing step, what
+    failed and the fix. Traced (under an outer ``jax.jit``/``jax.grad``) the same message
+    is raised at run time by equinox instead: a ``jax.errors.JaxRuntimeError`` that
+    contains it (an ``equinox.EquinoxRuntimeError`` under ``equinox.filter_jit``)."""
 
 
 #: What to try when a simulation inverts tets or blows up under an actuator load.
@@ -71,18 +81,78 @@ def _inverted(model: Model, prep: Prepared, x) -> Array:
     return jnp.sum(det3(deformation_gradient(model, prep.dminv, x)) <= 0)
 
 
-def _describe(model: Model, activation) -> str:
-    """``"activations {channel: value, ...}"`` (or ``"no actuators"``) for error messages."""
-    if model.n_channels == 0:
-        return "no actuators"
-    values = np.asarray(activation).ravel()
-    pairs = (f"{n!r}: {v:.6g}" for n, v in zip(model.channel_names, values))
-    return "activations {" + ", ".join(pairs) + "}"
+#: What a failure message can name, in the order of its branch: the iteration cap, the
+#: positions / velocities / force residual going non-finite, inverted tets.
+_VARIANTS = ("max_iterations", "positions", "velocities", "force residual", "inverted")
 
 
-def _row(controls, k: int):
-    """Row ``k`` of the controls (``()`` when there are none)."""
-    return () if controls is None else controls[k]
+def _step_templates(model: Model, call: str = "rollout") -> tuple[str, ...]:
+    """One message per :data:`_VARIANTS` entry for a failing rollout step (``{step}``
+    stands for its index); ``call`` names the function in the advice."""
+    o = model.options
+    cap = (f"step {{step}}: stopped at the iteration cap ({o.max_iter} iterations, Options.max_iter) without "
+           f"meeting its tolerance (relative force residual <= tol = {o.tol:g}); {call}(..., throw=False) returns "
+           f"the residual it reached in info.residual. Raise Options.max_iter, loosen Options.tol, or reduce "
+           f"Options.dt (now {o.dt:g} s).")
+    nonfinite = ("step {step}: the %s became non-finite (NaN/inf). Reduce dt, check the loads and the "
+                 f"activations at that step, or raise max_iter. {_FIXES}.")
+    inverted = (f"step {{step}}: more tets inverted (det F <= 0) than in the initial state; {call}(..., "
+                f"throw=False) returns the counts in info.inverted. {_FIXES}.")
+    return (cap, *(nonfinite % what for what in _VARIANTS[1:4]), inverted)
+
+
+def _static_templates(model: Model) -> tuple[str, ...]:
+    """As :func:`_step_templates` for :func:`solve_static` (no step)."""
+    o = model.options
+    cap = (f"the static solve stopped at the iteration cap ({o.max_iter} iterations, Options.max_iter) without "
+           f"meeting its tolerance (relative force residual <= tol = {o.tol:g}); solve_static(..., throw=False) "
+           "returns the residual it reached in info.residual. Raise Options.max_iter or loosen Options.tol.")
+    nonfinite = ("the static solve's %s became non-finite (NaN/inf): no equilibrium was found near x0 (the load "
+                 f"may exceed what the body can carry). {_FIXES}.")
+    inverted = (f"the static solution has more inverted tets (det F <= 0) than x0; solve_static(..., "
+                f"throw=False) returns the count in info.inverted. {_FIXES}.")
+    return (cap, *(nonfinite % what for what in _VARIANTS[1:4]), inverted)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Messages:
+    """The failure messages of ``n_steps`` steps, entry ``variant * n_steps + step``
+    (``equinox.branched_error_if``'s branches). Formatted on demand: only the entry that
+    is raised is ever built."""
+
+    templates: tuple[str, ...]
+    n_steps: int
+
+    def __len__(self) -> int:
+        return len(self.templates) * self.n_steps
+
+    def __getitem__(self, index) -> str:
+        variant, k = divmod(int(index), self.n_steps)
+        return self.templates[variant].replace("{step}", str(k))
+
+
+def _first_failure(result, x_after, v_after):
+    """``(failed, branch)``: whether any step's code is not success, and the branch
+    ``variant * n_steps + k`` of the first failing step ``k`` (``result (n_steps,)``;
+    ``x_after``, ``v_after`` ``(n_steps, n, 3)`` the states the steps ended in)."""
+    failed = result != int(RESULTS.success)
+    k = jnp.argmax(failed)
+    code = result[k]
+    what = jnp.where(~jnp.all(jnp.isfinite(x_after[k])), 1, jnp.where(~jnp.all(jnp.isfinite(v_after[k])), 2, 3))
+    variant = jnp.where(code == int(RESULTS.max_iterations), 0,
+                        jnp.where(code == int(RESULTS.nonfinite), what, 4))
+    return jnp.any(failed), variant * result.shape[0] + k
+
+
+def _raise_failure(tree, failed, branch, messages: _Messages):
+    """``tree`` unchanged; raise ``messages[branch]`` when ``failed``: a
+    :class:`SimulationError` now when the flags are concrete, else (traced) an equinox
+    runtime error with the same text, tied to ``tree`` so that it fires when it is used."""
+    if isinstance(failed, jax.core.Tracer) or isinstance(branch, jax.core.Tracer):
+        return eqx.branched_error_if(tree, failed, branch, messages)
+    if bool(failed):
+        raise SimulationError(messages[int(branch)])
+    return tree
 
 
 class Trajectory(eqx.Module):
@@ -172,6 +242,8 @@ def _check_controls(model: Model, controls, forces, n_steps):
 def _rollout(model: Model, params: Params, state0: State, controls, forces, n_steps: int):
     prep = prepare(model, params)
 
+    inverted0 = _inverted(model, prep, state0.x)
+
     def body(carry, inputs):
         state, bad = carry
         a, f = inputs
@@ -179,11 +251,12 @@ def _rollout(model: Model, params: Params, state0: State, controls, forces, n_st
         # A non-finite residual is a step that could not start (an overflowing load, say):
         # the positions it returns are finite but not a solution.
         finite = jnp.all(jnp.isfinite(new.x)) & jnp.all(jnp.isfinite(new.v)) & jnp.isfinite(info.residual)
+        result = RESULTS.of(finite=finite, converged=info.converged, inverted=info.inverted, inverted0=inverted0)
+        info = dataclasses.replace(info, result=jnp.where(bad, int(RESULTS.nonfinite), result).astype(jnp.int32))
         new = jax.tree.map(lambda n, o: jnp.where(bad, o, n), new, state)
-        return (new, bad | ~finite), (new.x, new.v, info, bad | ~finite)
+        return (new, bad | ~finite), (new.x, new.v, info)
 
     inputs = (controls, forces)
-    inverted0 = _inverted(model, prep, state0.x)
     carry = (state0, jnp.asarray(False))
     if model.options.adjoint.segment_checkpoints and n_steps > 3:
         # Nested scans: the outer one keeps only segment-start states; each segment is
@@ -195,17 +268,18 @@ def _rollout(model: Model, params: Params, state0: State, controls, forces, n_st
         def segment(carry, seg_inputs):
             return jax.lax.scan(body, carry, seg_inputs, length=k)
 
-        _, (xs, vs, info, bad) = jax.lax.scan(segment, carry, segments, length=n_steps // k)
-        xs, vs, info, bad = jax.tree.map(lambda a: a.reshape((n_steps,) + a.shape[2:]), (xs, vs, info, bad))
+        _, (xs, vs, info) = jax.lax.scan(segment, carry, segments, length=n_steps // k)
+        xs, vs, info = jax.tree.map(lambda a: a.reshape((n_steps,) + a.shape[2:]), (xs, vs, info))
     else:
-        _, (xs, vs, info, bad) = jax.lax.scan(body, carry, inputs, length=n_steps)
+        _, (xs, vs, info) = jax.lax.scan(body, carry, inputs, length=n_steps)
+    failed, branch = _first_failure(info.result, xs, vs)
     xs = jnp.concatenate([state0.x[None], xs])
     vs = jnp.concatenate([state0.v[None], vs])
-    return Trajectory(x=xs, v=vs, info=info), bad, inverted0
+    return Trajectory(x=xs, v=vs, info=info), failed, branch
 
 
 def rollout(model: Model, params: Params, state0: State, controls=None, forces=None,
-            n_steps: int | None = None) -> Trajectory:
+            n_steps: int | None = None, *, throw: bool = True) -> Trajectory:
     """Simulate ``n_steps`` implicit-Euler steps (one compiled ``lax.scan``).
 
     Arguments:
@@ -214,50 +288,35 @@ def rollout(model: Model, params: Params, state0: State, controls=None, forces=N
         controls: ``(n_steps, n_channels)`` activations, or ``None``.
         forces: ``(n_steps, n, 3)`` external forces, or ``None``.
         n_steps: number of steps (taken from controls/forces when omitted).
+        throw: raise :class:`SimulationError` for the first step whose
+            ``info.result`` is not ``RESULTS.success`` (the default); ``False`` returns
+            the trajectory with the codes instead and never raises for a failed step.
 
     Returns:
         A :class:`Trajectory` with ``x, v`` of shape ``(n_steps + 1, n, 3)`` (the first row is
-        ``state0``) and per-step statistics.
+        ``state0``) and per-step :class:`StepInfo`; ``info.result`` holds each step's
+        :class:`~softbody._types.RESULTS` code (``inverted``: more inverted tets than
+        ``state0`` had). After a ``nonfinite`` step the state is held and every later
+        step carries that code.
 
     Raises:
-        SceneError: bad control or force shapes, or NaN/inf in them (before compiling).
-        SimulationError: the state or a step's residual became non-finite, or a step ended with more inverted
-            tets (``det F <= 0``) than ``state0`` had; names the first bad step, the
-            quantity and the activations there. Under an outer ``jit``/``grad`` the check
-            cannot raise a Python error; it becomes an ``equinox.error_if`` runtime error
-            instead.
+        SceneError: bad control or force shapes, or NaN/inf in them (before compiling),
+            whatever ``throw``.
+        SimulationError: with ``throw=True``, a step stopped at the iteration cap without
+            meeting its tolerance, its state or residual became non-finite, or it ended
+            with more inverted tets (``det F <= 0``) than ``state0``; the message names the
+            first failing step, what failed and the fix. Traced (under an outer
+            ``jit``/``grad``) the same message is raised at run time as an equinox error
+            (a ``jax.errors.JaxRuntimeError`` containing it).
     """
     controls, forces, n_steps = _check_controls(model, controls, forces, n_steps)
-    traj, bad, inverted0 = _rollout(model, params, state0, controls, forces, n_steps)
-    new_inversions = traj.info.inverted > inverted0
-    if isinstance(bad, jax.core.Tracer) or isinstance(inverted0, jax.core.Tracer):
-        xs = eqx.error_if(traj.x, jnp.any(bad), "softbody: the simulation became non-finite (NaN/inf)")
-        xs = eqx.error_if(xs, jnp.any(new_inversions),
-                          f"softbody: the simulation inverted tets. {_FIXES}.")
-        return Trajectory(x=xs, v=traj.v, info=traj.info)
-    bad, new_inversions = np.asarray(bad), np.asarray(new_inversions)
-    first_bad = int(np.argmax(bad)) if bad.any() else None
-    first_inverted = int(np.argmax(new_inversions)) if new_inversions.any() else None
-    # Inverted tets usually come first and make the objective NaN: name the cause.
-    if first_inverted is not None and (first_bad is None or first_inverted <= first_bad):
-        k = first_inverted
-        raise SimulationError(
-            f"step {k}: {int(traj.info.inverted[k])} tets inverted (det F <= 0; the initial "
-            f"state had {int(inverted0)}) under {_describe(model, _row(controls, k))}. {_FIXES}.")
-    if first_bad is not None:
-        k = first_bad
-        xs, vs = np.asarray(traj.x[k + 1]), np.asarray(traj.v[k + 1])
-        what = ("positions" if not np.isfinite(xs).all() else
-                "velocities" if not np.isfinite(vs).all() else "the force residual")
-        res = float(traj.info.residual[k])
-        raise SimulationError(
-            f"step {k}: {what} became non-finite (step residual {res:.3g}, "
-            f"{int(traj.info.iterations[k])} iterations; {_describe(model, _row(controls, k))}). "
-            f"Reduce dt, check loads and activations, or raise max_iter. {_FIXES}.")
-    return traj
+    traj, failed, branch = _rollout(model, params, state0, controls, forces, n_steps)
+    if not throw:
+        return traj
+    return _raise_failure(traj, failed, branch, _Messages(_step_templates(model), n_steps))
 
 
-def solve_static(model: Model, params: Params, force=None, activation=None, x0=None):
+def solve_static(model: Model, params: Params, force=None, activation=None, x0=None, *, throw: bool = True):
     """Static equilibrium under gravity, external forces and activations.
 
     Minimises ``E(x) - f . x`` with the same PD machinery (no inertia, no damping).
@@ -266,37 +325,29 @@ def solve_static(model: Model, params: Params, force=None, activation=None, x0=N
         force: ``(n, 3)`` external forces in newtons, or ``None``.
         activation: ``(n_channels,)`` or ``None``.
         x0: initial guess ``(n, 3)`` (default: the rest shape).
+        throw: raise :class:`SimulationError` when ``info.result`` is not
+            ``RESULTS.success`` (the default); ``False`` returns ``(x, info)`` whatever the
+            result.
 
     Returns:
-        ``(x, info)``: positions ``(n, 3)`` and :class:`StepInfo`.
+        ``(x, info)``: positions ``(n, 3)`` and :class:`StepInfo`, whose ``result`` is the
+        :class:`~softbody._types.RESULTS` code (``inverted``: more inverted tets than ``x0``).
 
     Raises:
         SceneError: when the model has no fixed vertices (the equilibrium is not unique).
-        SimulationError: the solution is non-finite (e.g. the load exceeds what the body can
-            carry, such as a cavity pressure past its maximum, where no equilibrium exists),
-            or has more inverted tets than ``x0``; names the count and the activations.
-            Under an outer ``jit``/``grad`` it is an ``equinox.error_if`` runtime error.
+        SimulationError: with ``throw=True``, the solve stopped at the iteration cap, its
+            solution is non-finite (e.g. the load exceeds what the body can carry, such as
+            a cavity pressure past its maximum, where no equilibrium exists), or it has more
+            inverted tets than ``x0``. Traced (under an outer ``jit``/``grad``) the same
+            message is raised at run time as an equinox error.
     """
     if len(model.fixed) == 0:
         raise SceneError("a static solve needs fixed vertices (build the model with fixed=...)")
     activation = _activation(model, activation)
-    x, info, inverted0 = _solve_static(model, params, force, activation, x0)
-    finite = jnp.all(jnp.isfinite(x))
-    if isinstance(x, jax.core.Tracer) or isinstance(info.inverted, jax.core.Tracer):
-        x = eqx.error_if(x, ~finite, "softbody: the static solve became non-finite (NaN/inf)")
-        x = eqx.error_if(x, info.inverted > inverted0,
-                         f"softbody: the static solve inverted tets. {_FIXES}.")
+    x, info, failed, branch = _solve_static(model, params, force, activation, x0)
+    if not throw:
         return x, info
-    if not bool(finite):
-        raise SimulationError(
-            f"the static solve became non-finite after {int(info.iterations)} iterations under "
-            f"{_describe(model, activation)}: no equilibrium was found near x0 (the load may "
-            f"exceed what the body can carry). {_FIXES}.")
-    if int(info.inverted) > int(inverted0):
-        raise SimulationError(
-            f"the static solution has {int(info.inverted)} inverted tets (det F <= 0; x0 had "
-            f"{int(inverted0)}) under {_describe(model, activation)}. {_FIXES}.")
-    return x, info
+    return _raise_failure((x, info), failed, branch, _Messages(_static_templates(model), 1))
 
 
 @functools.partial(jax.jit, static_argnums=0)
@@ -304,4 +355,5 @@ def _solve_static(model, params, force, activation, x0):
     prep = prepare(model, params, static=True)
     state = initial_state(model, params, x=x0)
     sol, info = model.options.adjoint.solve(model, prep, state, activation, force, static=True)
-    return sol.x, info, _inverted(model, prep, state.x)
+    failed, branch = _first_failure(info.result[None], sol.x[None], jnp.zeros_like(sol.x)[None])
+    return sol.x, info, failed, branch

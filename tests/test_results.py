@@ -1,0 +1,121 @@
+"""Per-step result codes (``StepInfo.result``) and ``throw=``: each failure kind from a real
+failing scene, reported at the right step with ``throw=False``, raised with one message
+with ``throw=True``, and the same message when the call is traced under ``jax.jit``."""
+
+import re
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from softbody.explicit import explicit_rollout
+from softbody.material import Material
+from softbody.meshing.grid import grid_box
+from softbody.model import Options, build, initial_state
+from softbody.simulate import RESULTS, SimulationError, rollout, solve_static
+
+#: 0.1 x 0.02 x 0.02 m beam on 5 x 1 x 1 cells (24 vertices, 30 tets), clamped at x = 0.
+BEAM = grid_box((0.1, 0.02, 0.02), (5, 1, 1))
+RUBBER = Material(E=1e5, nu=0.3, density=1000.0)
+#: A tolerance no single iteration meets: every step stops at a 1-iteration cap.
+CAPPED = Options(dt=0.01, tol=1e-12, max_iter=1)
+
+
+def _message(call) -> str:
+    with pytest.raises(SimulationError) as caught:
+        call()
+    return str(caught.value)
+
+
+def _traced_raises(call, message: str):
+    """``call()`` (a jitted function) raises at run time with ``message`` in its text."""
+    with pytest.raises(Exception, match=re.escape(message)):
+        jax.block_until_ready(call())
+
+
+@pytest.fixture(scope="module")
+def beam():
+    model, params = build(BEAM, RUBBER, fixed="fixed")
+    state = initial_state(model, params)
+    # One compiled program for every load below: the forces are its argument.
+    traced = jax.jit(lambda forces: rollout(model, params, state, forces=forces).x)
+    return model, params, state, traced
+
+
+def _loads(model, step: int, vertices, fz: float) -> np.ndarray:
+    forces = np.zeros((3, model.n_vertices, 3))
+    forces[step:, vertices, 2] = fz
+    return forces
+
+
+def test_codes_are_plain_integers():
+    assert [int(c) for c in RESULTS] == [0, 1, 2, 3]
+    assert [c.name for c in RESULTS] == ["success", "max_iterations", "nonfinite", "inverted"]
+    assert "iteration cap" in RESULTS.max_iterations.message
+
+
+def test_a_normal_rollout_succeeds_at_every_step(beam):
+    model, params, state, traced = beam
+    traj = rollout(model, params, state, forces=_loads(model, 0, BEAM.regions["tip"].vertices, -0.01))
+    assert traj.info.result.dtype == jnp.int32
+    np.testing.assert_array_equal(traj.info.result, [RESULTS.success] * 3)
+    assert bool(traj.info.converged.all())
+    assert np.isfinite(np.asarray(traced(jnp.zeros((3, model.n_vertices, 3))))).all()
+
+
+def test_the_iteration_cap_is_reported_and_raised_the_same_traced_or_not():
+    model, params = build(BEAM, RUBBER, fixed="fixed", options=CAPPED)
+    state = initial_state(model, params)
+    traj = rollout(model, params, state, n_steps=3, throw=False)
+    np.testing.assert_array_equal(traj.info.result, [RESULTS.max_iterations] * 3)
+    assert np.all(np.asarray(traj.info.iterations) == 1) and np.all(np.asarray(traj.info.residual) > 1e-12)
+    message = _message(lambda: rollout(model, params, state, n_steps=3))
+    assert message.startswith("step 0: stopped at the iteration cap (1 iterations")
+    assert "tol = 1e-12" in message and "Raise Options.max_iter, loosen Options.tol, or reduce Options.dt" in message
+    _traced_raises(lambda: jax.jit(lambda p: rollout(model, p, state, n_steps=3).x[-1])(params), message)
+
+
+def test_a_non_finite_step_is_reported_and_raised_the_same_traced_or_not(beam):
+    """A finite but absurd load (1e300 N) from step 1 on overflows the objective there."""
+    model, params, state, traced = beam
+    forces = _loads(model, 1, slice(None), 1e300)
+    traj = rollout(model, params, state, forces=forces, throw=False)
+    np.testing.assert_array_equal(traj.info.result, [RESULTS.success, RESULTS.nonfinite, RESULTS.nonfinite])
+    message = _message(lambda: rollout(model, params, state, forces=forces))
+    assert message.startswith("step 1: the force residual became non-finite (NaN/inf)")
+    _traced_raises(lambda: traced(jnp.asarray(forces)), message)
+
+
+def test_inverted_tets_are_reported_and_raised_the_same_traced_or_not(beam):
+    """10 kN on one tip corner pushes it through its tets by the second step."""
+    model, params, state, traced = beam
+    forces = _loads(model, 0, BEAM.regions["tip"].vertices[0], -1e4)
+    traj = rollout(model, params, state, forces=forces, throw=False)
+    np.testing.assert_array_equal(traj.info.result, [RESULTS.success, RESULTS.inverted, RESULTS.inverted])
+    assert int(traj.info.inverted[0]) == 0 and int(traj.info.inverted[1]) > 0
+    message = _message(lambda: rollout(model, params, state, forces=forces))
+    assert message.startswith("step 1: more tets inverted (det F <= 0) than in the initial state")
+    _traced_raises(lambda: traced(jnp.asarray(forces)), message)
+
+
+def test_static_solve_at_its_cap_is_reported_and_raised_the_same_traced_or_not():
+    model, params = build(BEAM, RUBBER, fixed="fixed", options=CAPPED)
+    x, info = solve_static(model, params, throw=False)
+    assert int(info.result) == RESULTS.max_iterations and not bool(info.converged)
+    message = _message(lambda: solve_static(model, params))
+    assert message.startswith("the static solve stopped at the iteration cap (1 iterations")
+    _traced_raises(lambda: jax.jit(lambda p: solve_static(model, p)[0])(params), message)
+
+
+def test_explicit_rollout_past_its_stability_limit_reports_nonfinite():
+    model, params = build(BEAM, Material(E=1e7, nu=0.3, density=1000.0), fixed="fixed",
+                          options=Options(dt=1e-3))
+    state = initial_state(model, params)
+    traj = explicit_rollout(model, params, state, n_steps=200, throw=False)
+    result = np.asarray(traj.info.result)
+    first = int(np.argmax(result != RESULTS.success))
+    assert result[first] == RESULTS.nonfinite and np.all(result[first:] == RESULTS.nonfinite)
+    assert np.all(result[:first] == RESULTS.success)
+    message = _message(lambda: explicit_rollout(model, params, state, n_steps=200))
+    assert message.startswith(f"step {first}: the explicit state became non-finite at dt = 0.001 s")
