@@ -14,18 +14,17 @@ variables make relative errors the natural scale and keep every iterate physical
 Two methods:
 
 * ``"lm"`` (default): Levenberg-Marquardt. Each iteration simulates once with ``p``
-  forward-mode tangents (``jax.jvp``), giving the residuals and their Jacobian together,
-  and solves ``(J^T J + lambda diag(J^T J)) dz = -J^T r`` (``lambda`` starts at 1e-2,
+  forward-mode tangents (``jax.jvp``, vmapped), giving the residuals and their Jacobian
+  together, and solves ``(J^T J + lambda diag(J^T J)) dz = -J^T r`` (``lambda`` starts at 1e-2,
   shrinks tenfold after an accepted step and grows tenfold after a rejected one).
-  Forward mode needs a simulation that is differentiable forwards: the estimate runs on
-  a copy of the model with the :class:`~softbody.gradients.Unrolled` adjoint and the
-  plain local-global iteration (:class:`~softbody.solvers.LocalGlobal`) by default, so
-  give the model a ``max_iter`` that lets that iteration converge (it needs many more
-  iterations than L-BFGS: ~1400 per step on the cantilever example at ``tol`` 1e-9). (Unrolling L-BFGS's iterations gave
-  derivatives 4-10 % off central differences on the clamped cantilever even at a
-  1e-12 tolerance, so its Jacobian would misdirect the steps; the local-global
-  iteration's derivative converges with its iterates and matched to 1e-8.) Near the
-  optimum the Gauss-Newton matrix also gives standard errors of the estimates.
+  The tangents are implicit: the estimate runs on a copy of the model with the
+  :class:`~softbody.gradients.ImplicitForward` adjoint, which solves one linear system
+  per step and tangent with the converged step's Hessian instead of differentiating
+  the solver's iterations, so any iteration method serves (the model's own by default)
+  and the Jacobian is that of the exact step solutions: give the model a tight ``tol``
+  (1e-9 on the cantilever example). Scenes with obstacles use the contact solver's own
+  implicit derivative. Near the optimum the Gauss-Newton matrix also gives standard
+  errors of the estimates.
 * ``"adam"``: optax Adam on ``C(z)`` with the model's own adjoint (reverse mode),
   through :func:`softbody.control.optimize.minimize`.
 """
@@ -44,10 +43,10 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from softbody.gradients import Unrolled
+from softbody.gradients import ImplicitForward
 from softbody.model import Model, Params, State, initial_state
 from softbody.simulate import rollout
-from softbody.solvers import IterationMethod, LocalGlobal
+from softbody.solvers import IterationMethod
 
 from .errors import ControlError
 from .losses import region_vertices
@@ -311,9 +310,8 @@ def identify(
         n_iter: iteration cap (LM: simulations; Adam: gradient evaluations).
         xtol: LM stops when a proposed step ``|dz|_inf`` (a relative change of the
             positive quantities) falls below it.
-        jacobian_method: the iteration the LM copy of the model runs (default
-            :class:`~softbody.solvers.LocalGlobal`, whose forward-mode derivative is exact;
-            the scene's contact solver when it has obstacles).
+        jacobian_method: the iteration the LM copy of the model runs (default: the
+            model's own; the implicit tangents do not depend on it).
         optimizer: the optax transformation for ``"adam"`` (default ``optax.adam(0.05)``).
         state0: the initial state (default: the rest shape).
         callback: ``callback(k, values)`` after each iteration with the current estimates.
@@ -340,10 +338,8 @@ def identify(
     start = time.perf_counter()
     if method == "adam":
         return _identify_adam(problem, optimizer, n_iter, callback, progress, start)
-    if jacobian_method is None:
-        jacobian_method = model.method if model.obstacles else LocalGlobal()
     lm_model = dataclasses.replace(model, options=dataclasses.replace(
-        model.options, adjoint=Unrolled(segment_checkpoints=False), method=jacobian_method))
+        model.options, adjoint=ImplicitForward(), method=jacobian_method or model.method))
     return _identify_lm(problem, lm_model, n_iter, xtol, callback, progress, start)
 
 

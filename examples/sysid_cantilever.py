@@ -4,10 +4,11 @@ A beam (0.32 x 0.08 x 0.08 m, E = 1 MPa, nu = 0.3, 1000 kg/m^3, mass damping 1/s
 clamped at x = 0 and released under gravity; it swings down and rings at about 4 Hz. The
 "camera" sees the 27 vertices of its top face for 0.3 s (30 frames of 10 ms) with
 Gaussian noise of 1 % of the peak marker displacement. Starting from E = 2 MPa and a
-damping three times too high, Levenberg-Marquardt (forward-mode Jacobians through the
-simulation, log variables) estimates E and the damping together; CMA-ES minimises the
-same misfit in the same variables, and we count the simulations it needs to reach (a) the
-same error in E as Levenberg-Marquardt and (b) the same misfit: a cost within 1/2 of
+damping three times too high, Levenberg-Marquardt (implicit forward-mode Jacobians
+through the simulation, :class:`~softbody.gradients.ImplicitForward`; log variables)
+estimates E and the damping together; CMA-ES minimises the same misfit in the same
+variables, and we count the simulations it needs to reach (a) the same error in E as
+Levenberg-Marquardt and (b) the same misfit: a cost within 1/2 of
 Levenberg-Marquardt's minimum, i.e. inside the estimate's one-standard-deviation
 likelihood region (the residuals are scaled by the noise, so ``C`` is half a chi-square).
 A point can cross the first threshold by chance while the damping is still off; the
@@ -18,7 +19,8 @@ Run::
     python examples/sysid_cantilever.py --out results/sysid
 
 Writes ``metrics.json`` (``E_rel_error``, ``iterations``, ``cmaes_simulations_to_same_error``,
-``cmaes_simulations_to_same_cost``, ...; a CMA-ES count is null when the budget ran out
+``cmaes_simulations_to_same_cost``, ``lm_wall_time_s`` (compilation included),
+``cmaes_wall_time_s`` (until CMA-ES met both (a) and (b)), ...; a CMA-ES count is null when the budget ran out
 first), ``convergence.png`` (E error and excess misfit against simulations for both
 methods) and
 ``fit.png`` (the tip's vertical motion: observed, initial guess, fitted).

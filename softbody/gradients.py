@@ -21,6 +21,13 @@ Two modes, both exact for what they differentiate (set ``Options(adjoint=...)``)
   and the same argument runs in ``d`` with the Hessian of ``Phi(embed(d))``. Per step the
   backward pass keeps the step's inputs and solution, not its rotations (the solution's
   are recomputed from positions). Contact scenes use the contact solver's own derivative.
+  Reverse mode only: JAX refuses ``jax.jvp``/``jax.jacfwd`` through it ("can't apply
+  forward-mode autodiff (jvp) to a custom_vjp function").
+* :class:`ImplicitForward`: the same derivative in forward mode: the tangent of ``x*`` for
+  a tangent ``theta_dot`` of the inputs solves ``H x_dot = -(d/dtheta grad_x Phi) theta_dot``
+  with the same Hessian product, preconditioner, chart and tolerance rule. For Jacobians
+  with few inputs (system identification); ``jax.grad`` through it runs but tapes each
+  step's linearisation, so use :class:`Implicit` for gradients.
 * :class:`Unrolled`: reverse mode through the iterations as they ran (a fixed-trip
   ``scan`` that skips finished iterations), each step and each iteration rematerialised
   (``jax.checkpoint``), and the time loop split into segments of ~sqrt(n_steps) steps
