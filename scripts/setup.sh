@@ -2,7 +2,7 @@
 # Install softbody and what it needs, then run one job.
 #
 #   bash scripts/setup.sh demo [ARGS...]   # install, then `softbody demo ARGS...`
-#   bash scripts/setup.sh test [ARGS...]   # install with test extras, then `pytest ARGS...`
+#   bash scripts/setup.sh test [ARGS...]   # install with test extras, then `pytest -n CORES ARGS...`
 #   bash scripts/setup.sh install          # install only
 #
 # Idempotent: system packages are installed only when missing (apt-get, as root or
@@ -56,7 +56,11 @@ fi
 export OPENBLAS_NUM_THREADS=${OPENBLAS_NUM_THREADS:-1}
 case "$job" in
     demo) exec "$VENV/bin/softbody" demo "$@" ;;
-    test) exec "$VENV/bin/python" -m pytest "$@" ;;
+    # Tests run in parallel, one test file per worker (module fixtures are built once): a
+    # worker per core, at most 4 (each holds its compiled programs, ~2-3 GB). Pass `-n 0`
+    # to run in one process.
+    test) workers=$(nproc 2>/dev/null || echo 2); [ "$workers" -gt 4 ] && workers=4
+          exec "$VENV/bin/python" -m pytest -n "$workers" --dist loadfile "$@" ;;
     install) echo "softbody installed in $VENV; activate with: source $VENV/bin/activate" ;;
     *) echo "unknown job '$job': use demo, test or install" >&2; exit 2 ;;
 esac
