@@ -12,9 +12,13 @@ from there instead of compiling it again.
   folder, or ``JAX_ENABLE_COMPILATION_CACHE=0``, softbody changes nothing; likewise for
   ``JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS``.
 * Programs that compile in under :data:`MIN_COMPILE_TIME_S` are not written (JAX's own
-  default is 1 s). JAX never caches programs that contain Python host callbacks
-  (``jax.pure_callback``: the :class:`~softbody.linsolve.SparseCholesky` and
-  :class:`~softbody.linsolve.SparseLDL` factorisations), so those compile every run.
+  default is 1 s).
+* JAX never writes a program that holds a Python host callback. At present every linear
+  solver's ``factorize`` holds one (``equinox.error_if`` in
+  :class:`~softbody.linsolve.DenseCholesky` and :class:`~softbody.linsolve.PCG`,
+  ``jax.pure_callback`` in the sparse solvers), and so does ``rollout`` traced under an
+  outer ``jit``/``grad``: rollouts and their gradients compile again in every process;
+  what the cache saves today is the many smaller programs around them.
 * The folder is kept under ``SOFTBODY_COMPILATION_CACHE_MB`` megabytes (default
   :data:`DEFAULT_MAX_MB`): at import, the least recently used programs beyond it are
   deleted. One run can go past the cap; the next import trims it.
@@ -47,8 +51,12 @@ SWITCH = "SOFTBODY_COMPILATION_CACHE"
 MAX_MB_VARIABLE = "SOFTBODY_COMPILATION_CACHE_MB"
 #: Default size cap, MB.
 DEFAULT_MAX_MB = 1024
-#: Programs compiling faster than this (s) are not written to the cache.
-MIN_COMPILE_TIME_S = 0.1
+#: Programs compiling faster than this (s) are not written to the cache. JAX's default, 1 s,
+#: skips all but the two big programs of ``softbody demo --quick``; its ~140 small ones
+#: (eager operations, the optimiser's update) took 12-26 s together to compile on the
+#: shared 2-core machine and 1.5 s to load from the cache (142 programs, ~9 ms each, 0.6 MB).
+#: Below 0.02 s (21 of them, 0.23 s together) a file does not pay.
+MIN_COMPILE_TIME_S = 0.02
 #: JAX's file suffix for one compiled program.
 ENTRY_SUFFIX = "-cache"
 
