@@ -148,13 +148,13 @@ def synthesize(model: Model, params: Params, markers: str | Sequence[int] | None
 
 def _get(params: Params, name: str) -> Array:
     if name == "friction":
-        return jnp.stack([jnp.asarray(p["mu_s"]) for p in params.obstacles])
+        return jnp.stack([p.mu_s for p in params.obstacles])
     return getattr(params, name)
 
 
 def _set(params: Params, name: str, value: Array) -> Params:
     if name == "friction":
-        obstacles = tuple(dict(p, mu_s=value[i], mu_k=value[i]) for i, p in enumerate(params.obstacles))
+        obstacles = tuple(p.replace(mu_s=value[i], mu_k=value[i]) for i, p in enumerate(params.obstacles))
         return eqx.tree_at(lambda q: q.obstacles, params, obstacles)
     return eqx.tree_at(lambda q: getattr(q, name), params, value)
 

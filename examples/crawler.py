@@ -33,11 +33,11 @@ import optax
 
 from softbody import control as sc
 from softbody.actuators import Muscle
-from softbody.contact import Plane
 from softbody.io import check_overwrite, write_metrics
 from softbody.material import Material
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, build
+from softbody.obstacles import Plane
 
 LENGTH, WIDTH, HEIGHT = 0.12, 0.02, 0.02
 N_SEGMENTS = 4

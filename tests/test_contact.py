@@ -7,6 +7,8 @@ Friction needs a tighter step tolerance than the core's default (1e-4 of ``|M s 
 which let a sliding cube's acceleration err by 2-4 %), so these scenes use 1e-6 to 1e-8.
 """
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -14,29 +16,26 @@ import numpy as np
 import pytest
 
 from softbody import contact, io
-from softbody.contact import (
-    Box,
-    Capsule,
-    ContactPD,
-    Diagonal,
-    HeightField,
-    Moving,
-    Naive,
-    ObstacleError,
-    Plane,
-    ScaledDiagonal,
-    Sphere,
-    _pd_split,
-    from_dict,
-    splitting_spectral_radius,
-)
+from softbody.contact import ContactPD
 from softbody.gradients import Unrolled
 from softbody.material import Material
 from softbody.meshing import examples
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, build, initial_state, prepare
+from softbody.obstacles import (
+    Box,
+    Capsule,
+    HeightField,
+    Moving,
+    ObstacleError,
+    Plane,
+    PlaneParams,
+    Sphere,
+    from_dict,
+)
 from softbody.simulate import rollout, step
 from softbody.solvers import LocalGlobal, StepProblem
+from softbody.splitting import Diagonal, Naive, ScaledDiagonal, _pd_split, splitting_spectral_radius
 
 from incline import G, acceleration, ramped_gravity, rot_y
 
@@ -99,8 +98,7 @@ def test_distances_vmap_over_obstacle_parameters():
     pts = jnp.array([[0.0, 0.0, 2.0], [0.3, -0.2, 0.1]])
     for ob in (Plane(), Sphere(), Box(), Capsule(), HeightField()):
         base = ob.init_params()
-        batch = jax.tree.map(lambda a: jnp.stack([a, a]), base)
-        batch["mu_s"] = jnp.array([0.2, 0.9])
+        batch = jax.tree.map(lambda a: jnp.stack([a, a]), base).replace(mu_s=jnp.array([0.2, 0.9]))
         phi, normal, vel = jax.vmap(lambda p: ob.distance(pts, p, 0.0))(batch)
         assert phi.shape == (2, 2) and normal.shape == vel.shape == (2, 2, 3)
         np.testing.assert_allclose(phi[0], ob.distance(pts, base, 0.0)[0])
@@ -204,8 +202,46 @@ def test_obstacle_validation_and_result_format():
     assert [o["type"] for o in result.obstacles] == [o.kind for o in obstacles]
     for ob, d in zip(obstacles, dicts):
         back = from_dict(d)
-        for key, value in ob.init_params().items():
-            np.testing.assert_allclose(back.init_params()[key], value, err_msg=f"{ob.kind}.{key}")
+        for f in dataclasses.fields(ob.init_params()):
+            np.testing.assert_allclose(
+                getattr(back.init_params(), f.name),
+                getattr(ob.init_params(), f.name),
+                err_msg=f"{ob.kind}.{f.name}",
+            )
+
+
+def test_obstacle_parameters_are_typed_pytrees():
+    """``init_params`` gives the shape's equinox module; updates go through ``replace`` or
+    ``eqx.tree_at``, unknown fields are refused, and ``to_dict`` writes the updated values
+    in the unchanged result format."""
+    params = Plane(mu_s=0.5, mu_k=0.4).init_params()
+    assert type(params) is PlaneParams
+    assert [f.name for f in dataclasses.fields(params)] == [
+        "mu_s",
+        "mu_k",
+        "restitution",
+        "point",
+        "normal",
+    ]
+    assert float(params.mu_k) == 0.4 and params.mu_k.dtype == jnp.float64
+    tilted = params.replace(mu_k=jnp.asarray(0.3), normal=jnp.array([0.0, 1.0, 1.0]))
+    assert float(tilted.mu_k) == 0.3 and float(params.mu_k) == 0.4  # a copy
+    assert float(eqx.tree_at(lambda p: p.mu_s, params, jnp.asarray(0.7)).mu_s) == 0.7
+    with pytest.raises(ObstacleError, match=r"PlaneParams has no field\(s\) \['mu'\]"):
+        params.replace(mu=0.1)
+    d = Plane().to_dict(tilted)
+    assert d == {
+        "type": "plane",
+        "point": [0.0, 0.0, 0.0],
+        "normal": [0.0, 1.0, 1.0],
+        "mu_s": 0.5,
+        "mu_k": 0.3,
+        "restitution": 0.0,
+    }
+    mesh = grid_box(cells=(1, 1, 1))
+    model, scene = build(mesh, Material(), obstacles=[Plane(mu_s=0.5, mu_k=0.4)])
+    scene = eqx.tree_at(lambda p: p.obstacles[0].mu_k, scene, jnp.asarray(0.2))
+    assert float(scene.obstacles[0].mu_k) == 0.2 and isinstance(scene.obstacles[0], PlaneParams)
 
 
 def test_contact_pd_rejects_bad_settings_and_mismatched_parameters():
@@ -229,8 +265,11 @@ def test_contact_pd_rejects_bad_settings_and_mismatched_parameters():
         time=jnp.asarray(0.0),
         obstacles=((Plane(), {"point": jnp.zeros(3)}),),
     )
-    with pytest.raises(ObstacleError, match="init_params"):
+    with pytest.raises(ObstacleError, match="must be the PlaneParams made by init_params"):
         ContactPD().run(problem, x, None, 1e-6, 10)
+    wrong = ((Plane(), Sphere().init_params()),)
+    with pytest.raises(ObstacleError, match="got a SphereParams"):
+        ContactPD().run(problem._replace(obstacles=wrong), x, None, 1e-6, 10)
     with pytest.raises(ObstacleError, match="obstacle 0 is a str"):
         ContactPD().run(problem._replace(obstacles=(("floor", {}),)), x, None, 1e-6, 10)
 
@@ -264,8 +303,9 @@ def gravity(mass, n_steps):
 
 def with_plane(params, **values):
     """``params`` with the plane's parameters updated."""
-    plane = {**params.obstacles[0], **{k: jnp.asarray(v, jnp.float64) for k, v in values.items()}}
-    return eqx.tree_at(lambda p: p.obstacles, params, (plane,))
+    values = {k: jnp.asarray(v, jnp.float64) for k, v in values.items()}
+    plane = params.obstacles[0].replace(**values)
+    return eqx.tree_at(lambda p: p.obstacles[0], params, plane)
 
 
 def on_incline(cube_scene, tan_theta, mu_k, n_steps):

@@ -15,11 +15,11 @@ import optax
 import pytest
 
 from softbody.actuators import Muscle
-from softbody.contact import Plane
 from softbody.gradients import check_grad
 from softbody.material import Material
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, SceneError, build, initial_state
+from softbody.obstacles import Plane
 from softbody.simulate import Trajectory, rollout
 from softbody import control as sc
 from softbody.control import ControlError

@@ -44,6 +44,9 @@ def test_demo_writes_every_output(quick_demo):
     # Not a terminal: no viewer, but the way to open one.
     assert f"softbody view {out / 'result.npz'}" in stdout
     assert "tip error" in stdout
+    # Not a terminal: no spinner, so a line says what the long silence is.
+    compiling, compiled = stdout.index("compiling the rollout"), stdout.index("compiled the rollout")
+    assert compiling < compiled and "tracing" in stdout[compiled:]
 
 
 def test_demo_optimises_the_reach(quick_demo):
@@ -62,6 +65,9 @@ def test_demo_optimises_the_reach(quick_demo):
         assert m["wall_time_s"][phase] > 0
     phases = ("mesh", "compile", "simulate", "optimise")
     assert m["wall_time_s"]["total"] >= sum(m["wall_time_s"][p] for p in phases)
+    assert m["timings"] == m["wall_time_s"]
+    assert m["timings"]["compile"] > m["timings"]["compile_trace"] > 0
+    assert 0 <= m["compilation_cache"]["loaded"] <= m["compilation_cache"]["programs"]
 
 
 def test_demo_result_holds_the_optimised_trajectory(quick_demo):

@@ -170,9 +170,9 @@ def test_no_contact_or_skeleton_work_without_obstacles_or_bones():
     """Without obstacles the default step is plain L-BFGS: the same program as asking for
     L-BFGS explicitly. A far-away plane (never touched) adds the contact machinery, and a
     skeleton adds its reduced solve; both make the step's program larger."""
-    from softbody.contact import Plane
     from softbody.material import Material
     from softbody.model import Options, build
+    from softbody.obstacles import Plane
     from softbody.skeleton import Fixed, Link, Skeleton, SkeletonPD
     from softbody.solvers import LBFGS
 

@@ -7,12 +7,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from softbody.contact import ContactPD, Plane
+from softbody.contact import ContactPD
 from softbody.gradients import Implicit, Unrolled
 from softbody.linsolve import DenseCholesky
 from softbody.material import Material
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, SceneError, build, initial_state
+from softbody.obstacles import Plane
 from softbody.simulate import _rollout, rollout
 from softbody.solvers import LBFGS, LocalGlobal
 

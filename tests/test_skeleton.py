@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 
 from softbody.actuators.joints import JointServo, JointTorque
-from softbody.contact import Plane
 from softbody.gradients import Unrolled, check_grad
 from softbody.material import Material
 from softbody.meshing import Region
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, SceneError, build, initial_state, prepare
+from softbody.obstacles import Plane
 from softbody.simulate import rollout
 from softbody.skeleton import (Fixed, Free, Link, Prismatic, Revolute, Skeleton, SkeletonContactPD, SkeletonError,
                                SkeletonPD, schur_direction, schur_factor)
@@ -407,8 +407,8 @@ def test_jointed_body_sticks_on_an_incline_below_the_friction_angle_and_slides_a
     def on_incline(tan_theta, kinetic, n_steps):
         r = rot_y(np.arctan(tan_theta))
         x0 = mesh.points @ r.T
-        plane = {**params.obstacles[0], "normal": jnp.asarray(r[:, 2]), "mu_k": jnp.asarray(kinetic)}
-        p = eqx.tree_at(lambda q: q.obstacles, params, (plane,))
+        plane = params.obstacles[0].replace(normal=jnp.asarray(r[:, 2]), mu_k=jnp.asarray(kinetic))
+        p = eqx.tree_at(lambda q: q.obstacles[0], params, plane)
         traj = rollout(model, p, initial_state(model, p, x=x0), forces=ramped_gravity(mass, n_steps, dt))
         assert bool(jnp.all(traj.info.converged))
         xs = np.asarray(traj.x)
@@ -446,8 +446,8 @@ def test_gradient_through_skeleton_contact_matches_central_differences(arm):
     forces = ramped_gravity(np.asarray(prepare(model, params).mass), 15, dt)
 
     def slide(mu_k):
-        plane = {**params.obstacles[0], "normal": jnp.asarray(r[:, 2]), "mu_k": mu_k}
-        p = eqx.tree_at(lambda q: q.obstacles, params, (plane,))
+        plane = params.obstacles[0].replace(normal=jnp.asarray(r[:, 2]), mu_k=mu_k)
+        p = eqx.tree_at(lambda q: q.obstacles[0], params, plane)
         traj = rollout(model, p, initial_state(model, p, x=x0), forces=forces)
         return jnp.mean(traj.x[-1] @ jnp.asarray(r[:, 0]))
 

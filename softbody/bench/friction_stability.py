@@ -41,21 +41,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from softbody.contact import (
-    ContactPD,
-    Diagonal,
-    Naive,
-    Plane,
-    ScaledDiagonal,
-    _pd_split,
-    _spectral_radius,
-)
+from softbody.contact import ContactPD
 from softbody.material import Material
 from softbody.meshing import TetMesh, examples
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, build, initial_state, prepare
 from softbody.objective import solve_step, step_objective
+from softbody.obstacles import Plane
 from softbody.solvers import LocalGlobal, StepProblem
+from softbody.splitting import Diagonal, Naive, ScaledDiagonal, _pd_split, _spectral_radius
 
 #: name -> splitting, in the order of the figure's panels
 SPLITTINGS = {"naive": Naive(), "diagonal": Diagonal(), "default": ScaledDiagonal()}

@@ -1,0 +1,117 @@
+"""Anderson acceleration (type II) of fixed-point iterations ``x <- G(x)``, for the contact
+solver's forward solve and the linear solve of its implicit derivative.
+
+From the pair ``(x, G(x))`` of each iteration, :func:`mix` keeps the last ``m``
+differences of (weighted) residuals ``G(x) - x`` and of map outputs, and returns the
+output combination whose residual combination is smallest in least squares
+(regularised; the Gram matrix of the residual differences is updated one row per
+iteration, so an update costs ``O(m N)``). A restart clears the history, after which the
+next iterate is the plain ``G(x)``; ``m = 0`` is the plain iteration. The history is a
+tuple of fixed-shape arrays (:func:`init`), so the iteration runs inside
+``jax.lax.while_loop``. :func:`linear_solve` applies the same mixing to ``u = J u + b``
+to solve ``(I - J) u = b`` when ``rho(J) < 1``.
+
+The acceleration is a heuristic with no convergence guarantee of its own: callers keep
+the best iterate and restart when the residual grows (see
+:class:`softbody.contact.ContactPD`).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+
+def init(m: int, size: int, dtype):
+    """An empty Anderson history.
+
+    Arguments:
+        m: the history length (0 allowed: the plain iteration keeps no history).
+        size: ``N``, the number of unknowns (the iterate's size).
+        dtype: the iterate's floating-point type.
+
+    Returns:
+        ``(dR (m, N), dG (m, N), dR dR^T (m, m), r (N,), g (N,), count ())``: residual and
+        output differences, their Gram matrix, the last weighted residual and output, and
+        the number of pairs seen since the last restart.
+    """
+    return (
+        jnp.zeros((m, size), dtype),
+        jnp.zeros((m, size), dtype),
+        jnp.zeros((m, m), dtype),
+        jnp.zeros(size, dtype),
+        jnp.zeros(size, dtype),
+        jnp.asarray(0),
+    )
+
+
+def mix(x, gx, weight, hist, restart, m: int):
+    """One Anderson (type II) update from the pair ``(x, G(x))``: returns ``(x_next, hist)``.
+
+    The last ``m`` differences of residuals ``weight * (G(x) - x)`` and of map outputs give
+    the mixing coefficients by regularised least squares (their Gram matrix is updated one
+    row per iteration); ``restart`` clears the history (the next iterate is then the plain
+    ``G(x)``). ``m = 0`` is the plain iteration.
+
+    Arguments:
+        x: the current iterate (any shape, ``N`` entries).
+        gx: ``G(x)``, the map's output (the shape of ``x``).
+        weight: ``(N,)`` weights of the residual entries (zero drops an entry).
+        hist: the history (:func:`init`, or this function's previous output).
+        restart: a boolean scalar: clear the history before this pair.
+        m: the history length (static), as given to :func:`init`.
+
+    Returns:
+        ``(x_next, hist)``: the next iterate (the shape of ``x``) and the updated history.
+    """
+    if m == 0:
+        return gx, hist
+    d_r, d_g, gram, prev_r, prev_g, count = hist
+    r = weight * (gx - x).ravel()
+    g = gx.ravel()
+    slot = jnp.maximum(count - 1, 0) % m
+    push = count >= 1
+    d_r = jnp.where(push, d_r.at[slot].set(r - prev_r), d_r)
+    d_g = jnp.where(push, d_g.at[slot].set(g - prev_g), d_g)
+    row = d_r @ d_r[slot]
+    gram = jnp.where(push, gram.at[slot, :].set(row).at[:, slot].set(row), gram)
+    count = jnp.where(restart, 1, count + 1)
+    valid = (jnp.arange(m) < jnp.minimum(count - 1, m)).astype(r.dtype)
+    gram_valid = gram * valid[:, None] * valid[None, :]
+    reg = 1e-10 * jnp.trace(gram_valid) + jnp.finfo(r.dtype).tiny
+    gamma = jnp.linalg.solve(gram_valid + jnp.diag(reg + (1.0 - valid)), valid * (d_r @ r))
+    x_next = (g - gamma @ d_g).reshape(x.shape)
+    return x_next, (d_r, d_g, gram, r, g, count)
+
+
+def linear_solve(matvec, b, *, history: int, rtol: float, max_iter: int):
+    """Solve ``matvec(u) = b``, ``matvec = I - J``, ``rho(J) < 1``: Anderson on ``u = J u + b``.
+
+    Arguments:
+        matvec: ``u -> (I - J) u``, linear.
+        b: the right-hand side (any shape).
+        history: the Anderson history length (>= 1).
+        rtol: stop when ``|J u + b - u| <= rtol |b|``.
+        max_iter: iteration cap (the last iterate is returned when it is reached).
+
+    Returns:
+        ``u``, the shape of ``b``.
+    """
+    bnorm = jnp.linalg.norm(b.ravel())
+    threshold = rtol * bnorm
+
+    def body(c):
+        u, k, _, hist = c
+        tu = u - matvec(u) + b
+        residual = jnp.linalg.norm((tu - u).ravel())
+        u, hist = mix(u, tu, jnp.ones(u.size, u.dtype), hist, jnp.asarray(False), history)
+        return u, k + 1, residual, hist
+
+    start = (
+        b,
+        jnp.asarray(0),
+        jnp.asarray(jnp.inf, b.dtype),
+        init(history, b.size, b.dtype),
+    )
+    u, *_ = jax.lax.while_loop(lambda c: (c[2] > threshold) & (c[1] < max_iter), body, start)
+    return u
