@@ -275,3 +275,44 @@ def test_tet_hessian_operator_names_bad_shapes_and_indices():
     with pytest.raises(ValueError, match=r"indices in \[0, 4\)"):
         apply(jnp.zeros((4, 3)))
     assert apply(jnp.ones((5, 3))).shape == (5, 3)
+
+
+@pytest.mark.slow  # ~3 min of CPU, mostly compiling the skeleton step's forward and reverse derivatives
+def test_forward_implicit_in_a_skeleton_chart_agrees_with_reverse():
+    """A skeleton's steps are stationary only in its reduced coordinates (the bone carries
+    joint forces): forward mode runs in the same chart as the adjoint. A bar with one
+    hinged bone under a shoulder torque, 3 steps; the tip height's derivative along a
+    direction in (torques, log E) from jvp through ImplicitForward against Implicit's
+    gradient (3e-11 apart when written)."""
+    from softbody.actuators.joints import JointTorque
+    from softbody.meshing.grid import grid_box
+    from softbody.skeleton import Link, Revolute, Skeleton, SkeletonPD
+
+    mesh = grid_box((0.2, 0.04, 0.04), (5, 2, 2))
+    p = mesh.points
+    inside = np.all((p >= np.array([0.03, 0.0, 0.0]) - 1e-9) & (p <= np.array([0.13, 0.04, 0.04]) + 1e-9), axis=1)
+    mesh = mesh.with_regions(**{"bone:upper": Region(np.flatnonzero(inside),
+                                                     np.flatnonzero(inside[mesh.tets].all(axis=1)))})
+    rig = Skeleton([Link("upper", "bone:upper", None, Revolute((0.0, 1.0, 0.0), (0.02, 0.02, 0.02)))]).bind(mesh)
+    tip = jnp.asarray(np.flatnonzero(mesh.points[:, 0] > 0.2 - 1e-9))
+
+    def make(adjoint):
+        model, params = build(mesh, Material(E=1e4, nu=0.3, density=1000.0), fixed="xmin",
+                              actuators=[JointTorque(rig, ["upper"])],
+                              options=Options(dt=0.01, tol=1e-12, max_iter=300, method=SkeletonPD(rig), adjoint=adjoint))
+        s0 = initial_state(model, params)
+
+        def loss(th):
+            q = type(params)(**{**params.__dict__, "E": jnp.exp(th["log_E"])})
+            return jnp.mean(rollout(model, q, s0, controls=th["torque"]).x[-1][tip, 2]) * 1e3  # mm
+
+        return loss, {"torque": jnp.full((3, 1), 2e-3), "log_E": jnp.log(params.E)}
+
+    forward, theta = make(ImplicitForward())
+    reverse, _ = make(Implicit())
+    d = {"torque": jnp.asarray([[1.0], [-0.5], [0.3]]), "log_E": jnp.ones_like(theta["log_E"])}
+    jvp = float(jax.jit(lambda th: jax.jvp(forward, (th,), (d,))[1])(theta))
+    g = jax.jit(jax.grad(reverse))(theta)
+    rev = sum(float(jnp.sum(g[k] * d[k])) for k in theta)
+    assert abs(rev) > 1e-3, "the tip must move with the torques and the modulus"
+    assert abs(jvp - rev) <= 1e-8 * abs(rev), (jvp, rev)
