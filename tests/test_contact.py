@@ -239,7 +239,7 @@ def test_obstacle_parameters_are_typed_pytrees():
         "restitution": 0.0,
     }
     mesh = grid_box(cells=(1, 1, 1))
-    model, scene = build(mesh, Material(), obstacles=[Plane(mu_s=0.5, mu_k=0.4)])
+    _, scene = build(mesh, Material(), obstacles=[Plane(mu_s=0.5, mu_k=0.4)])
     scene = eqx.tree_at(lambda p: p.obstacles[0].mu_k, scene, jnp.asarray(0.2))
     assert float(scene.obstacles[0].mu_k) == 0.2 and isinstance(scene.obstacles[0], PlaneParams)
 
