@@ -1,8 +1,28 @@
 """softbody: a differentiable soft-robot design and control workbench.
 
-Importing ``softbody`` turns on JAX's 64-bit mode (``jax_enable_x64``): the simulator's
-tolerances and the finite-difference gradient checks assume float64. Arrays you pass in
-float32 are promoted; set ``JAX_ENABLE_X64=0`` *after* importing if you really want float32.
+``import softbody as sb`` gives the chosen flat namespace (loaded on first use, so
+``import softbody`` stays quick)::
+
+    mesh = sb.meshing.examples.cantilever(size=0.01)
+    model, params = sb.build(mesh, sb.Material(E=1e5, nu=0.45), fixed="fixed",
+                             options=sb.Options(dt=0.01))
+    traj = sb.rollout(model, params, sb.initial_state(model, params), n_steps=50)
+
+Scenes: :func:`build`, :func:`prepare`, :func:`initial_state`, :class:`Material`,
+:class:`Options`, :class:`Model`, :class:`Params`, :class:`State`, :class:`SceneError`.
+Stepping: :func:`rollout`, :func:`step`, :func:`solve_static`, :class:`Trajectory`,
+:class:`StepInfo`, :class:`SimulationError`. Strategies: :class:`LBFGS`,
+:class:`LocalGlobal` (nonlinear iterations), :class:`Implicit`, :class:`ImplicitForward`,
+:class:`Unrolled` (differentiation), :func:`check_grad`. Parts by module:
+``sb.meshing`` (geometry -> meshes), ``sb.actuators``, ``sb.obstacles`` (``sb.obstacles.Plane``,
+...), ``sb.contact`` (the contact solver), ``sb.skeleton``, ``sb.control``, ``sb.linsolve``,
+``sb.io``.
+
+**Float64.** Importing ``softbody`` turns on JAX's 64-bit mode (``jax_enable_x64``): the
+simulator's tolerances and the finite-difference gradient checks assume float64, and arrays
+you pass in float32 are promoted. To keep JAX's default 32-bit mode, set the environment
+variable ``SOFTBODY_FLOAT64=0`` before importing (then softbody leaves ``jax_enable_x64``
+as it finds it).
 
 The distribution installs one namespace: ``softbody`` (the simulator),
 ``softbody.meshing`` (the repository's ``meshing/`` folder), ``softbody.actuators``
@@ -14,11 +34,47 @@ programs they compiled before; ``SOFTBODY_COMPILATION_CACHE=0`` turns it off, an
 ``JAX_COMPILATION_CACHE_DIR`` wins (see :mod:`softbody.cache`).
 """
 
+import importlib
+import os
+
 import jax
 
 from softbody import cache as _cache
 
-jax.config.update("jax_enable_x64", True)
+if os.environ.get("SOFTBODY_FLOAT64", "1").strip().lower() not in ("0", "false", "no", "off"):
+    jax.config.update("jax_enable_x64", True)
 _cache.setup()
 
 __version__ = "0.1.0"
+
+#: The flat namespace: public name -> the module that defines it.
+_NAMES = {
+    **dict.fromkeys(("Model", "Options", "Params", "Prepared", "SceneError", "State", "StepInfo"), "softbody._types"),
+    **dict.fromkeys(("build", "initial_state", "prepare"), "softbody.model"),
+    "Material": "softbody.material",
+    "RigidBody": "softbody.rigid",
+    "RESULTS": "softbody._types",
+    **dict.fromkeys(("SimulationError", "Trajectory", "rollout", "solve_static", "step"), "softbody.simulate"),
+    **dict.fromkeys(("LBFGS", "LocalGlobal"), "softbody.solvers"),
+    **dict.fromkeys(("Adjoint", "Implicit", "ImplicitForward", "Unrolled", "check_grad"), "softbody.gradients"),
+}
+#: Submodules reachable as attributes (``sb.meshing``, ``sb.contact``, ...).
+_MODULES = ("actuators", "contact", "control", "io", "linsolve", "meshing", "obstacles", "reference", "render",
+            "skeleton", "viewer")
+
+__all__ = sorted(_NAMES) + list(_MODULES)
+
+
+def __getattr__(name: str):
+    if name in _NAMES:
+        value = getattr(importlib.import_module(_NAMES[name]), name)
+    elif name in _MODULES:
+        value = importlib.import_module(f"softbody.{name}")
+    else:
+        raise AttributeError(f"module 'softbody' has no attribute {name!r}")
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))

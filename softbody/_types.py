@@ -197,7 +197,7 @@ class Model:
     diag_to_data: np.ndarray  # (n,) int32 positions of the diagonal entries
     terms: tuple = ()  # actuator terms (see softbody.simulate for the term kinds)
     channel_names: tuple[str, ...] = ()
-    obstacles: tuple = ()  # obstacle objects (see softbody.contact)
+    obstacles: tuple = ()  # obstacle objects (see softbody.obstacles)
     stiffness_damping: bool = False  # some material had beta > 0 at build time
 
     @property

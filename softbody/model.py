@@ -94,7 +94,7 @@ def build(
             ``points (n, 3) -> bool mask (n,)``, or ``None`` for a free body.
         options: :class:`Options`.
         actuators: actuator terms (see :mod:`softbody.actuators`).
-        obstacles: obstacles for contact and friction (see :mod:`softbody.contact`).
+        obstacles: obstacles for contact and friction (see :mod:`softbody.obstacles`).
 
     Returns:
         ``(model, params)``.

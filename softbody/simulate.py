@@ -45,6 +45,7 @@ optional ``(n_steps, n, 3)`` array in newtons.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 
@@ -153,6 +154,21 @@ def _raise_failure(tree, failed, branch, messages: _Messages):
     if bool(failed):
         raise SimulationError(messages[int(branch)])
     return tree
+
+
+@contextlib.contextmanager
+def _forward_mode_hint():
+    """Name the fix when forward-mode autodiff (``jax.jvp``/``jacfwd``) meets the reverse-mode
+    :class:`~softbody.gradients.Implicit` adjoint (JAX's own message names neither)."""
+    try:
+        yield
+    except TypeError as err:
+        if "forward-mode" in str(err) and "custom_vjp" in str(err):
+            raise TypeError(
+                "softbody: the Implicit adjoint differentiates in reverse mode (jax.grad, jax.vjp) only; "
+                "for forward mode (jax.jvp, jax.jacfwd) build the scene with "
+                "Options(adjoint=softbody.ImplicitForward())") from err
+        raise
 
 
 class Trajectory(eqx.Module):
@@ -310,7 +326,8 @@ def rollout(model: Model, params: Params, state0: State, controls=None, forces=N
             (a ``jax.errors.JaxRuntimeError`` containing it).
     """
     controls, forces, n_steps = _check_controls(model, controls, forces, n_steps)
-    traj, failed, branch = _rollout(model, params, state0, controls, forces, n_steps)
+    with _forward_mode_hint():
+        traj, failed, branch = _rollout(model, params, state0, controls, forces, n_steps)
     if not throw:
         return traj
     return _raise_failure(traj, failed, branch, _Messages(_step_templates(model), n_steps))
@@ -344,7 +361,8 @@ def solve_static(model: Model, params: Params, force=None, activation=None, x0=N
     if len(model.fixed) == 0:
         raise SceneError("a static solve needs fixed vertices (build the model with fixed=...)")
     activation = _activation(model, activation)
-    x, info, failed, branch = _solve_static(model, params, force, activation, x0)
+    with _forward_mode_hint():
+        x, info, failed, branch = _solve_static(model, params, force, activation, x0)
     if not throw:
         return x, info
     return _raise_failure((x, info), failed, branch, _Messages(_static_templates(model), 1))

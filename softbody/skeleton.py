@@ -935,7 +935,7 @@ class SkeletonContactPD(ContactPD):
       ``B`` the FK Jacobian; a joint at a limit pushed outward is held, as in
       :class:`SkeletonPD`.
 
-    Convergence carries over from :class:`~softbody.contact.ScaledDiagonal`'s theorem:
+    Convergence carries over from :class:`~softbody.splitting.ScaledDiagonal`'s theorem:
     with ``T = diag(I, B)`` the reduced matrices are ``T^T L T`` and ``T^T (M/h^2 + D) T``,
     the latter block diagonal (``D`` is diagonal), and ``L <= 4 diag(L)`` gives
     ``T^T L T <= 2 T^T D T``, so the frozen-projection iteration matrix again has its

@@ -62,3 +62,45 @@ def test_params_replace():
         params.replace(nu=jnp.ones(3))
     with pytest.raises(SceneError, match=r"Params.morph must be \(n, 3\)"):
         params.replace(morph=jnp.zeros(5))
+
+
+def test_float64_switch_and_its_opt_out():
+    """Importing softbody turns on float64; SOFTBODY_FLOAT64=0 set before importing keeps
+    JAX's 32-bit default (the documented opt-out)."""
+    import os
+    import subprocess
+    import sys
+
+    code = "import softbody as sb, jax.numpy as jnp; print(jnp.zeros(1).dtype, sb.Options.__name__)"
+    env = {k: v for k, v in os.environ.items() if k not in ("JAX_ENABLE_X64", "SOFTBODY_FLOAT64")}
+    on = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    off = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                         env={**env, "SOFTBODY_FLOAT64": "0"})
+    assert on.stdout.split() == ["float64", "Options"], on.stderr
+    assert off.stdout.split() == ["float32", "Options"], off.stderr
+
+
+def test_flat_namespace():
+    import softbody as sb
+
+    assert sb.build is build and sb.Options is Options and sb.rollout is rollout
+    assert sb.obstacles.Plane is Plane and sb.meshing.grid.grid_box is grid_box
+    missing = [name for name in sb.__all__ if not hasattr(sb, name)]
+    assert not missing, missing
+    with pytest.raises(AttributeError, match="no attribute 'bulid'"):
+        sb.bulid
+
+
+def test_forward_mode_through_implicit_names_the_fix():
+    """jax.jacfwd through the reverse-mode Implicit adjoint is refused at trace time with a
+    message naming ImplicitForward (JAX's own message names neither)."""
+    import jax
+
+    model, params = _build()
+
+    def tip(E):
+        p = params.replace(E=E)
+        return rollout(model, p, initial_state(model, p), n_steps=2).x[-1].sum()
+
+    with pytest.raises(TypeError, match=r"Options\(adjoint=softbody.ImplicitForward\(\)\)"):
+        jax.jacfwd(tip)(params.E)

@@ -4,11 +4,11 @@ For each mesh (a structured grid box and the example robots of
 :mod:`softbody.meshing.examples`, each resting on a rough ground plane), Young's modulus
 ``E`` from 1e4 Pa (soft) to 1e7 Pa (stiff) (``nu`` = 0.45, density 1000 kg/m^3) and time
 step ``dt`` from 1/1000 s to 1/30 s, and for each splitting ``D`` of
-:mod:`softbody.contact` (:class:`~softbody.contact.Naive`, :class:`~softbody.contact.Diagonal`
-and the default :class:`~softbody.contact.ScaledDiagonal`), it measures
+:mod:`softbody.splitting` (:class:`~softbody.splitting.Naive`, :class:`~softbody.splitting.Diagonal`
+and the default :class:`~softbody.splitting.ScaledDiagonal`), it measures
 
 - the spectral radius of the splitting's iteration matrix ``(M/h^2 + D)^{-1} (D - L)``
-  with the projections held fixed (:func:`~softbody.contact.splitting_spectral_radius`;
+  with the projections held fixed (:func:`~softbody.splitting.splitting_spectral_radius`;
   for the default also the proved bound and ``1 - rho``), and, for reference, that of the
   absolute-row-sum splitting ``D = diag(sum_j |L_ij|)``, which needs the matrix entries
   that an iteration method does not see;
