@@ -52,7 +52,7 @@ from softbody import rotation as rot
 from softbody.meshing import TetMesh
 from softbody.contact import ContactPD, _contact_step, _nearest_obstacle
 from softbody.model import SceneError
-from softbody.solvers import IterationMethod, Solution, StepProblem, iterate
+from softbody.solvers import IterationMethod, Solution, StepProblem, iterate, lbfgs_direction, store_pair
 
 Array = jax.Array
 
@@ -530,6 +530,13 @@ class Rig:
             z = z.at[c:c + 7].set(jnp.concatenate([z[c:c + 3] + d[:3], q / jnp.linalg.norm(q)]))
         return z
 
+    def step_taken(self, z: Array, z_new: Array, dz: Array) -> Array:
+        """The tangent step ``(n_dofs,)`` from ``z`` to ``z_new = retract(z, dz)``: ``dz``
+        with the angles and slides replaced by their actual change (the limits clamp them)."""
+        if not len(self.scalar_links):
+            return dz
+        return dz.at[self.scalar_dofs].set(z_new[self.scalar_coords] - z[self.scalar_coords])
+
     def coordinates(self, x_bone: Array) -> Array:
         """The coordinates ``(n_coords,)`` whose FK best fits bone positions ``(n_b, 3)``.
 
@@ -772,8 +779,14 @@ class SkeletonPD(IterationMethod):
     """Implicit steps with rigid bones in reduced coordinates (see the module docstring).
 
     Each iteration evaluates ``Phi`` and its gradient at ``x = assemble(x_free, FK(z))``,
-    forms the reduced gradient ``(g_f, B^T g_r)``, takes the direction of
-    :func:`schur_direction`, and backtracks (halving) until Armijo's condition holds.
+    forms the reduced gradient ``(g_f, B^T g_r)``, takes the L-BFGS direction in the reduced
+    coordinates with the reduced PD solve (:func:`schur_direction`) as its initial inverse
+    Hessian, and backtracks (halving) until Armijo's condition holds. The PD matrix holds
+    the elastic and inertial terms only; the quasi-Newton pairs add the curvature of the
+    rest, chiefly joint servos, whose stiffness in joint space can exceed the condensed
+    matrix's by orders of magnitude (a servo of 50 N m/rad on a soft arm: 200 plain
+    reduced-PD iterations ended at a residual of 8.6e-4, the L-BFGS iteration converges).
+    A direction that does not descend is replaced by the plain reduced PD direction.
     Updates stay on the manifold (:meth:`Rig.retract`); a joint at a limit whose gradient
     pushes it outward is held for that iteration. The step starts from ``z`` fitted to the
     inertial prediction ``x_n + h v_n`` of the bones (:meth:`Rig.coordinates`), so no state
@@ -783,6 +796,8 @@ class SkeletonPD(IterationMethod):
     Attributes:
         rig: the :class:`Rig` (skeleton bound to the scene's mesh).
         backtracks: the most halvings of a step (static).
+        history: the number of stored L-BFGS curvature pairs (static; 0 for the plain
+            reduced PD direction).
 
     The PD matrix is prefactored with the true volume weight (``volume_weight = 1``), for
     which the PD model majorises the elastic energy.
@@ -795,25 +810,31 @@ class SkeletonPD(IterationMethod):
     differentiates the iterations as they ran.
 
     Raises:
-        SkeletonError: (in ``run``) the rig was bound to a mesh of another size, or the
-            scene has obstacles (use :class:`SkeletonContactPD`).
-        equinox.EquinoxRuntimeError: (at run time) a bone vertex is fixed.
+        SkeletonError: (in ``prepare``) a bone vertex is fixed; (in ``run``) the rig was
+            bound to a mesh of another size, or the scene has obstacles (use
+            :class:`SkeletonContactPD`).
     """
 
     rig: Rig
     backtracks: int = 8
+    history: int = 10
 
     def __post_init__(self):
         if not isinstance(self.rig, Rig):
             raise SkeletonError(f"SkeletonPD.rig must be a Rig (Skeleton.bind(mesh)), got {type(self.rig).__name__}")
-        if int(self.backtracks) != self.backtracks or self.backtracks < 0:
-            raise SkeletonError(f"SkeletonPD.backtracks must be an integer >= 0, got {self.backtracks!r}")
+        for name in ("backtracks", "history"):
+            value = getattr(self, name)
+            if int(value) != value or value < 0:
+                raise SkeletonError(f"SkeletonPD.{name} must be an integer >= 0, got {value!r}")
 
     def prepare(self, model, data, factor) -> SchurFactor | None:
         """The :class:`SchurFactor` of the scene's PD matrix (``None`` for a mesh of another
         size; :meth:`run` then reports the mismatch)."""
         if model.n_vertices != self.rig.n_vertices:
             return None
+        if np.any(model.free_mask[self.rig.bone] == 0):
+            raise SkeletonError("some bone vertices are fixed; bones move with their joints (weld a bone to the "
+                                "world with a root Fixed() joint instead)")
         return schur_factor(model.linear_solver, model.pattern, data, self.rig)
 
     def implicit_chart(self, prepared, x, free):
@@ -853,9 +874,7 @@ class SkeletonPD(IterationMethod):
         if not isinstance(problem.prepared, SchurFactor):
             raise SkeletonError("SkeletonPD needs its per-rollout condensation in problem.prepared; build the "
                                 "step problem with softbody.model.prepare and softbody.objective.solve_step")
-        fixed = jnp.any(problem.free[jnp.asarray(self.rig.bone)] == 0)
-        return eqx.error_if(x0, fixed, "softbody: some bone vertices are fixed; bones move with their joints "
-                                       "(weld a bone to the world with a root Fixed() joint instead)")
+        return x0
 
     def run(self, problem, x0, q0, threshold, max_iter, unrolled=False):
         """Solve one step; see :class:`~softbody.solvers.IterationMethod`.
@@ -871,14 +890,39 @@ class SkeletonPD(IterationMethod):
         rig, evaluate = self.rig, problem.evaluate
         factor = problem.prepared
         bone = jnp.asarray(rig.bone)
+        soft = 1.0 - rig.is_bone
+        n, m = x0.shape[0], self.history
 
         def reduced(g, pose, z):
             """The reduced gradient ``B^T g_r``, the dofs held at a limit this iteration, and
             the norm of ``(g_f, B^T g_r)`` over the dofs that may move."""
             g_z = rig.reduce(pose, g[bone])
             locked = _held(rig, z, g_z)
-            gnorm = jnp.sqrt(jnp.sum((g * (1.0 - rig.is_bone)) ** 2) + jnp.sum((g_z * (1.0 - locked)) ** 2))
+            gnorm = jnp.sqrt(jnp.sum((g * soft) ** 2) + jnp.sum((g_z * (1.0 - locked)) ** 2))
             return g_z, locked, gnorm
+
+        def flat(v_f, v_z):  # a reduced vector (soft rows, joint tangents) as one (3 n + k,)
+            return jnp.concatenate([(v_f * soft).reshape(-1), v_z])
+
+        def unflat(v):
+            return v[:3 * n].reshape(n, 3), v[3 * n:]
+
+        def direction(g, pose, g_z, locked, lbfgs):
+            """``(d, d_z)``: the step is ``x - alpha d``, ``z - alpha d_z`` (bone rows of
+            ``d`` unused: the bones are placed by ``FK``)."""
+            move = 1.0 - locked
+
+            def precondition(r):
+                r_f, r_z = unflat(r)
+                d, d_z = _solve_reduced(factor, rig, pose, r_f, r_z * move, locked)
+                return flat(d, d_z * move)
+
+            g_r = flat(g, g_z * move)
+            if m == 0:
+                return unflat(precondition(g_r))
+            d_f, d_z = unflat(-lbfgs_direction(g_r, *lbfgs, precondition))
+            d = flat(d_f, d_z * move)
+            return unflat(jax.lax.cond(jnp.sum(g_r * d) > 0, lambda: d, lambda: precondition(g_r)))
 
         z0 = rig.coordinates(x0[bone])
         pose0 = rig.pose(z0)
@@ -889,9 +933,9 @@ class SkeletonPD(IterationMethod):
             return (c[8] > threshold) & (c[10] < max_iter)
 
         def body(c):
-            x, z, q, phi, g, pose, g_z, locked, _, evals, k = c
-            d, d_z = _solve_reduced(factor, rig, pose, g.at[bone].set(0.0), g_z, locked)
-            slope = jnp.sum(g * d)  # -dPhi/dalpha along (x - alpha d, z - alpha d_z)
+            x, z, q, phi, g, pose, g_z, locked, _, evals, k, lbfgs = c
+            d, d_z = direction(g, pose, g_z, locked, lbfgs)
+            slope = jnp.sum((g * soft) * d) + jnp.sum(g_z * d_z)  # -dPhi/dalpha along (x - alpha d, z - alpha d_z)
 
             def trial(alpha):
                 z_t = rig.retract(z, -alpha * d_z)
@@ -909,15 +953,21 @@ class SkeletonPD(IterationMethod):
                 return alpha / 2, tries + 1, trial(alpha / 2)
 
             # The search runs no iterations after acceptance (they would halve the accepted step).
-            _, tries, (x, z, q, phi, g, pose) = iterate(
+            alpha, tries, (x_new, z_new, q, phi, g_new, pose_new) = iterate(
                 rejected, halve, (jnp.asarray(1.0), jnp.asarray(0), trial(1.0)), self.backtracks,
                 unrolled is not False)
-            return (x, z, q, phi, g, pose, *reduced(g, pose, z), evals + 1 + tries, k + 1)
+            g_z_new, locked, gnorm = reduced(g_new, pose_new, z_new)
+            if m:
+                lbfgs = store_pair(lbfgs, flat(x_new - x, rig.step_taken(z, z_new, -alpha * d_z)), flat(g_new - g, g_z_new - g_z))
+            return (x_new, z_new, q, phi, g_new, pose_new, g_z_new, locked, gnorm, evals + 1 + tries, k + 1,
+                    lbfgs)
 
-        init = (x0, z0, q0, phi0, g0, pose0, *reduced(g0, pose0, z0), jnp.asarray(1), jnp.asarray(0))
-        x, _, q, _, _, _, _, _, gnorm, evals, k = iterate(cond, body, init, max_iter, unrolled)
+        size = 3 * n + rig.n_dofs
+        lbfgs = (jnp.zeros((m, size), x0.dtype), jnp.zeros((m, size), x0.dtype), jnp.zeros(m, x0.dtype),
+                 jnp.asarray(0), jnp.zeros((m, m), x0.dtype))
+        init = (x0, z0, q0, phi0, g0, pose0, *reduced(g0, pose0, z0), jnp.asarray(1), jnp.asarray(0), lbfgs)
+        x, _, q, _, _, _, _, _, gnorm, evals, k, _ = iterate(cond, body, init, max_iter, unrolled)
         return Solution(x, q, k, evals, gnorm)
-
 
 
 @dataclass(frozen=True, eq=False)

@@ -227,6 +227,32 @@ def lbfgs_direction(g: Array, s_hist: Array, y_hist: Array, rho: Array, count: A
     return -(r + (jnp.zeros(m, g.dtype).at[order].set(c) @ s_hist).reshape(g.shape))
 
 
+def store_pair(history: tuple, s: Array, y: Array) -> tuple:
+    """Add the curvature pair ``(s, y)`` to an L-BFGS history, if ``s . y`` is positive.
+
+    Arguments:
+        history: ``(s_hist (m, N), y_hist (m, N), rho (m,), count, sy (m, m))`` as
+            :func:`lbfgs_direction` takes them.
+        s, y: ``(N,)`` the step and the change of the gradient.
+
+    Returns:
+        The history with the pair in slot ``count % m`` (unchanged when ``s . y`` is not
+        positive relative to ``|s| |y|``: the pair would break positive definiteness).
+    """
+    s_hist, y_hist, rho, count, sy_hist = history
+    m = s_hist.shape[0]
+    sy = jnp.sum(s * y)
+    store = sy > 1e-12 * jnp.sqrt(jnp.sum(s * s) * jnp.sum(y * y))
+    slot = count % m
+    s_hist = s_hist.at[slot].set(jnp.where(store, s, s_hist[slot]))
+    y_hist = y_hist.at[slot].set(jnp.where(store, y, y_hist[slot]))
+    # The new pair's row s . Y^T and column S . y of A = S Y^T.
+    sy_new = sy_hist.at[slot, :].set(y_hist @ s).at[:, slot].set(s_hist @ y)
+    sy_hist = jnp.where(store, sy_new, sy_hist)
+    rho = rho.at[slot].set(jnp.where(store, 1.0 / jnp.where(store, sy, 1.0), rho[slot]))
+    return s_hist, y_hist, rho, count + store.astype(count.dtype), sy_hist
+
+
 @dataclass(frozen=True)
 class LBFGS(IterationMethod):
     """L-BFGS with the PD matrix as initial Hessian and an Armijo safeguard.
@@ -269,18 +295,8 @@ class LBFGS(IterationMethod):
                 return (x_f, *evaluate(x_f, q))
 
             x_new, phi_new, g_new, q_new = jax.lax.cond(failed, fallback, lambda: (x + d, phi_t, g_t, q_t))
-            s = (x_new - x).reshape(-1)
-            y = (g_new - g).reshape(-1)
-            sy = jnp.sum(s * y)
-            store = sy > 1e-12 * jnp.sqrt(jnp.sum(s * s) * jnp.sum(y * y))
-            slot = count % m
-            s_hist = s_hist.at[slot].set(jnp.where(store, s, s_hist[slot]))
-            y_hist = y_hist.at[slot].set(jnp.where(store, y, y_hist[slot]))
-            # The new pair's row s . Y^T and column S . y of A = S Y^T.
-            sy_new = sy_hist.at[slot, :].set(y_hist @ s).at[:, slot].set(s_hist @ y)
-            sy_hist = jnp.where(store, sy_new, sy_hist)
-            rho = rho.at[slot].set(jnp.where(store, 1.0 / jnp.where(store, sy, 1.0), rho[slot]))
-            count = count + store.astype(count.dtype)
+            s_hist, y_hist, rho, count, sy_hist = store_pair(
+                (s_hist, y_hist, rho, count, sy_hist), (x_new - x).reshape(-1), (g_new - g).reshape(-1))
             evals = evals + 1 + failed.astype(evals.dtype)
             return x_new, phi_new, g_new, q_new, s_hist, y_hist, rho, k + 1, count, evals, sy_hist
 

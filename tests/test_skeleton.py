@@ -278,7 +278,7 @@ def test_bad_joints_and_bones_are_rejected(bar):
 def test_fixed_bone_vertices_and_wrong_meshes_are_rejected(bar, arm):
     rig = Skeleton([Link("a", "bone:a", None, Free())]).bind(bar)
     model, params = build(bar, SKIN, fixed=rig.bone[:1], options=Options(method=SkeletonPD(rig)))
-    with pytest.raises(Exception, match="bone vertices are fixed"):
+    with pytest.raises(SkeletonError, match="bone vertices are fixed"):
         rollout(model, params, initial_state(model, params), n_steps=1)
     model, params = build(arm[0], SKIN, options=Options(method=SkeletonPD(rig)))
     with pytest.raises(SkeletonError, match="bound to a mesh of 400 vertices"):
