@@ -54,7 +54,7 @@ _NAMES = {
     "Material": "softbody.material",
     "RigidBody": "softbody.rigid",
     "RESULTS": "softbody._types",
-    **dict.fromkeys(("SimulationError", "Trajectory", "rollout", "solve_static", "step"), "softbody.simulate"),
+    **dict.fromkeys(("SimulationError", "Trajectory", "check_trajectory", "rollout", "solve_static", "step"), "softbody.simulate"),
     **dict.fromkeys(("LBFGS", "LocalGlobal"), "softbody.solvers"),
     **dict.fromkeys(("Adjoint", "Implicit", "ImplicitForward", "Unrolled", "check_grad"), "softbody.gradients"),
 }

@@ -13,12 +13,15 @@ from there instead of compiling it again.
   ``JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS``.
 * Programs that compile in under :data:`MIN_COMPILE_TIME_S` are not written (JAX's own
   default is 1 s).
-* JAX never writes a program that holds a Python host callback. At present every linear
-  solver's ``factorize`` holds one (``equinox.error_if`` in
-  :class:`~softbody.linsolve.DenseCholesky` and :class:`~softbody.linsolve.PCG`,
-  ``jax.pure_callback`` in the sparse solvers), and so does ``rollout`` traced under an
-  outer ``jit``/``grad``: rollouts and their gradients compile again in every process;
-  what the cache saves today is the many smaller programs around them.
+* JAX never writes a program that holds a Python host callback. Rollouts with
+  :class:`~softbody.linsolve.DenseCholesky` or :class:`~softbody.linsolve.PCG` (the
+  default below 400 vertices) hold none when called at top level; under an outer
+  ``jit``/``grad``, ``rollout(..., throw=True)`` checks its steps with a callback, so
+  compiled functions that should be cached call ``rollout(..., throw=False)`` and
+  :func:`softbody.simulate.check_trajectory` on their output (as ``softbody demo`` does).
+  The sparse solvers (:class:`~softbody.linsolve.SparseLDL`, the default from 400
+  vertices, and :class:`~softbody.linsolve.SparseCholesky`) factorise on the host
+  through ``jax.pure_callback``: their programs compile again in every process.
 * The folder is kept under ``SOFTBODY_COMPILATION_CACHE_MB`` megabytes (default
   :data:`DEFAULT_MAX_MB`): at import, the least recently used programs beyond it are
   deleted. One run can go past the cap; the next import trims it.

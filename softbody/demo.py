@@ -112,11 +112,9 @@ OUTPUTS = ("metrics.json", "result.npz", "render.png", "render.mp4", "loss.png")
 class Evaluation(NamedTuple):
     """What one evaluation of the objective returns besides the loss."""
 
-    x: object  # (T + 1, n, 3) positions
+    traj: object  # the Trajectory: x, v (T + 1, n, 3), info per step
     activation: object  # (T + 1, c) activations per frame
     tip: object  # (T + 1, 3) tip centroid
-    iterations: object  # (T,) solver iterations per step
-    converged: object  # (T,) bool
 
 
 def arm_mesh(size: float):
@@ -160,7 +158,10 @@ def make_objective(model, params, state0, basis: np.ndarray, tip: np.ndarray):
 
     Returns:
         ``evaluate(z) -> (loss, Evaluation)``: activations ``sigmoid(basis @ z)`` drive a
-        rollout (frame k's activation acts during the step that ends at frame k).
+        rollout (frame k's activation acts during the step that ends at frame k). The
+        rollout does not raise inside the compiled program (a host callback would keep it
+        out of the persistent compilation cache): pass each result's trajectory to
+        :func:`softbody.simulate.check_trajectory`.
     """
     import jax
     import jax.numpy as jnp
@@ -174,13 +175,26 @@ def make_objective(model, params, state0, basis: np.ndarray, tip: np.ndarray):
 
     def evaluate(z):
         activation = jax.nn.sigmoid(basis @ z)
-        traj = rollout(model, params, state0, controls=activation[1:])
+        traj = rollout(model, params, state0, controls=activation[1:], throw=False)
         tip_x = traj.x[:, tip].mean(axis=1)
         reach = jnp.sum(weights * jnp.sum((tip_x - target) ** 2, axis=-1)) / ARM_LENGTH**2
         loss = reach + EFFORT * jnp.mean(activation**2)
-        return loss, Evaluation(traj.x, activation, tip_x, traj.info.iterations, traj.info.converged)
+        return loss, Evaluation(traj, activation, tip_x)
 
     return evaluate
+
+
+def _checked(model, program, evaluation):
+    """``program`` that raises :class:`~softbody.simulate.SimulationError` for a failed step
+    of the trajectory in ``evaluation(output)`` (see :func:`make_objective`)."""
+    from softbody.simulate import check_trajectory
+
+    def run(z):
+        out = program(z)
+        check_trajectory(model, evaluation(out).traj)
+        return out
+
+    return run
 
 
 def _progress(console):
@@ -261,6 +275,8 @@ def demo(out: Path, settings: Settings, *, force: bool = False, console=None) ->
         times["compile_trace"] = time.perf_counter() - tick
         forward, loss_and_grad = (program.compile() for program in traced)
     times["compile"] = time.perf_counter() - tick
+    forward = _checked(model, forward, lambda out: out[1])
+    loss_and_grad = _checked(model, loss_and_grad, lambda out: out[0][1])
     loaded = (f"{counts['hits']} of {counts['requests']} programs loaded from the compilation cache" if kept
               else "compilation cache off")
     console.print(f"compiled the rollout and its gradient ({times['compile']:.1f} s: tracing "
@@ -271,7 +287,7 @@ def demo(out: Path, settings: Settings, *, force: bool = False, console=None) ->
     initial_loss, initial = jax.block_until_ready(forward(z))  # a program without callbacks returns at once
     times["simulate"] = time.perf_counter() - tick
     console.print(f"simulated {settings.steps * settings.dt:.2f} s ({settings.steps} steps, "
-                  f"{float(np.mean(initial.iterations)):.0f} solver iterations per step) in "
+                  f"{float(np.mean(initial.traj.info.iterations)):.0f} solver iterations per step) in "
                   f"{times['simulate']:.1f} s; with the initial controls the tip ends "
                   f"{_describe_error(_tip_error(initial))} from the target", soft_wrap=True)
 
@@ -302,11 +318,11 @@ def demo(out: Path, settings: Settings, *, force: bool = False, console=None) ->
         "initial_tip_distance_fraction": _tip_error(initial) / ARM_LENGTH,
         "final_tip_distance_fraction": _tip_error(final) / ARM_LENGTH,
         "final_activation": dict(zip(channels, np.asarray(final.activation)[-1].tolist())),
-        "solver_iterations_per_step": {"mean": float(np.mean(final.iterations)),
-                                       "max": int(np.max(final.iterations)),
-                                       "all_converged": bool(np.all(final.converged))},
+        "solver_iterations_per_step": {"mean": float(np.mean(final.traj.info.iterations)),
+                                       "max": int(np.max(final.traj.info.iterations)),
+                                       "all_converged": bool(np.all(final.traj.info.converged))},
     }
-    result = Result.from_mesh(mesh, np.asarray(final.x), settings.dt, activation=np.asarray(final.activation),
+    result = Result.from_mesh(mesh, np.asarray(final.traj.x), settings.dt, activation=np.asarray(final.activation),
                               channel_names=channels, loss_history=np.asarray(history),
                               obstacles=MARKERS, metadata={"demo": metrics})
     with console.status("rendering"):

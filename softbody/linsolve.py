@@ -67,7 +67,6 @@ import weakref
 from collections.abc import Callable
 from dataclasses import dataclass
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -461,22 +460,19 @@ class DenseCholesky(LinearSolver):
     ``n^3 / 3`` flops: the fastest choice on CPU below ``n ~ 400``, and on a GPU as long
     as the matrix fits. Works under ``vmap`` and on any backend.
 
-    Raises (at run time, from ``factorize``, also under ``jit``): an error saying the
-    matrix is not symmetric positive definite or the values are not symmetric.
+    A matrix that is not symmetric positive definite, holds NaN/inf or has values that
+    are not symmetric gives a factor of NaN, so every solve with it is NaN (``rollout``
+    reports such a step as non-finite). The check is arithmetic, not a run-time error: a
+    host callback would keep every program that factorises out of JAX's persistent
+    compilation cache.
     """
 
     def factorize(self, pattern: SparsityPattern, data) -> Factor:
         data = _check_data(self, pattern, data)
         values = jax.lax.stop_gradient(data)
         chol, _ = jax.scipy.linalg.cho_factor(pattern.to_dense(values), lower=True)
-        chol = eqx.error_if(chol, _asymmetry(pattern, values), f"DenseCholesky: {_ASYMMETRIC}")
-        chol = eqx.error_if(
-            chol,
-            ~jnp.all(jnp.isfinite(jnp.diagonal(chol))),
-            "DenseCholesky: the matrix is not positive definite (or holds NaN/inf); check "
-            "the material parameters and the time step",
-        )
-        return Factor(data, chol)
+        bad = _asymmetry(pattern, values) | ~jnp.all(jnp.isfinite(jnp.diagonal(chol)))
+        return Factor(data, jnp.where(bad, jnp.nan, chol))
 
     def solve(self, pattern: SparsityPattern, factor: Factor, b, x0=None) -> jax.Array:
         b, _ = _check_solve_args(self, pattern, factor, (pattern.n, pattern.n), b, x0)
@@ -513,10 +509,13 @@ class PCG(LinearSolver):
             last iterate is returned, and the caller's residual check must catch it.
         preconditioner: ``"jacobi"`` (divide by the diagonal) or ``"none"``.
 
+    A matrix with a diagonal entry that is not positive (it cannot be SPD), NaN/inf on
+    its diagonal or values that are not symmetric gives a factor whose solves are NaN
+    (as :class:`DenseCholesky`, without a run-time callback).
+
     Raises:
         ValueError: for a non-positive ``tol`` or ``max_iter`` or an unknown
-            preconditioner; ``factorize`` raises at run time when a diagonal entry is not
-            positive (the matrix cannot be SPD) or the values are not symmetric.
+            preconditioner.
     """
 
     tol: float = 1e-10
@@ -538,17 +537,11 @@ class PCG(LinearSolver):
     def factorize(self, pattern: SparsityPattern, data) -> Factor:
         data = _check_data(self, pattern, data)
         diagonal = jax.lax.stop_gradient(data)[pattern.diagonal_index]
-        diagonal = eqx.error_if(
-            diagonal, _asymmetry(pattern, jax.lax.stop_gradient(data)), f"PCG: {_ASYMMETRIC}"
-        )
-        diagonal = eqx.error_if(
-            diagonal,
-            ~jnp.all(diagonal > 0),
-            "PCG: a diagonal entry is not positive, so the matrix is not positive definite",
-        )
+        bad = _asymmetry(pattern, jax.lax.stop_gradient(data)) | ~jnp.all(diagonal > 0)
+        diagonal = jnp.where(bad, jnp.nan, diagonal)
         if self.preconditioner == "jacobi":
             return Factor(data, 1.0 / diagonal)
-        return Factor(data, jnp.ones_like(diagonal))
+        return Factor(data, diagonal / diagonal)  # ones, or NaN for a refused matrix
 
     def solve(self, pattern: SparsityPattern, factor: Factor, b, x0=None) -> jax.Array:
         b, x0 = _check_solve_args(self, pattern, factor, (pattern.n,), b, x0)

@@ -96,7 +96,8 @@ def _step_templates(model: Model, call: str = "rollout") -> tuple[str, ...]:
            f"the residual it reached in info.residual. Raise Options.max_iter, loosen Options.tol, or reduce "
            f"Options.dt (now {o.dt:g} s).")
     nonfinite = ("step {step}: the %s became non-finite (NaN/inf). Reduce dt, check the loads and the "
-                 f"activations at that step, or raise max_iter. {_FIXES}.")
+                 f"activations at that step, or raise max_iter. {_FIXES}. (A system matrix that is not "
+                 "positive definite, from a non-positive mass, stiffness or time step, shows here too.)")
     inverted = (f"step {{step}}: more tets inverted (det F <= 0) than in the initial state; {call}(..., "
                 f"throw=False) returns the counts in info.inverted. {_FIXES}.")
     return (cap, *(nonfinite % what for what in _VARIANTS[1:4]), inverted)
@@ -323,7 +324,9 @@ def rollout(model: Model, params: Params, state0: State, controls=None, forces=N
             with more inverted tets (``det F <= 0``) than ``state0``; the message names the
             first failing step, what failed and the fix. Traced (under an outer
             ``jit``/``grad``) the same message is raised at run time as an equinox error
-            (a ``jax.errors.JaxRuntimeError`` containing it).
+            (a ``jax.errors.JaxRuntimeError`` containing it); that check is a host callback,
+            which keeps the compiled program out of the persistent compilation cache: pass
+            ``throw=False`` there and call :func:`check_trajectory` on the result instead.
     """
     controls, forces, n_steps = _check_controls(model, controls, forces, n_steps)
     with _forward_mode_hint():
@@ -331,6 +334,36 @@ def rollout(model: Model, params: Params, state0: State, controls=None, forces=N
     if not throw:
         return traj
     return _raise_failure(traj, failed, branch, _Messages(_step_templates(model), n_steps))
+
+
+def check_trajectory(model: Model, traj: Trajectory) -> Trajectory:
+    """Raise for the first failed step of a computed trajectory, as ``rollout`` would.
+
+    Under an outer ``jax.jit`` or ``jax.grad``, ``rollout(..., throw=True)`` raises through
+    an equinox runtime check, a Python host callback inside the compiled program; JAX does
+    not keep such programs in its persistent compilation cache, so they compile again in
+    every process. Calling ``rollout(..., throw=False)`` inside the compiled function and
+    ``check_trajectory`` on what it returns gives the same errors, from a program that the cache
+    keeps (``softbody demo`` does this).
+
+    Arguments:
+        model: the model the trajectory was simulated with (for the messages).
+        traj: a :class:`Trajectory` with concrete arrays, ``x, v`` ``(n_steps + 1, n, 3)``
+            and ``info`` per step.
+
+    Returns:
+        ``traj`` unchanged.
+
+    Raises:
+        SimulationError: a step's ``info.result`` is not ``RESULTS.success``; the message
+            names the first failing step, what failed and the fix (as ``rollout``'s).
+        TypeError: ``traj`` holds tracers (call it on the compiled function's output).
+    """
+    if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(traj)):
+        raise TypeError("softbody.simulate.check_trajectory needs a computed trajectory; inside jax.jit or jax.grad use "
+                        "rollout(..., throw=True), or call check_trajectory on the compiled function's output")
+    failed, branch = _first_failure(jnp.asarray(traj.info.result), jnp.asarray(traj.x[1:]), jnp.asarray(traj.v[1:]))
+    return _raise_failure(traj, failed, branch, _Messages(_step_templates(model), int(traj.info.result.shape[0])))
 
 
 def solve_static(model: Model, params: Params, force=None, activation=None, x0=None, *, throw: bool = True):

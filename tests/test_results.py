@@ -13,7 +13,7 @@ from softbody.explicit import explicit_rollout
 from softbody.material import Material
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, build, initial_state
-from softbody.simulate import RESULTS, SimulationError, rollout, solve_static
+from softbody.simulate import RESULTS, SimulationError, check_trajectory, rollout, solve_static
 
 #: 0.1 x 0.02 x 0.02 m beam on 5 x 1 x 1 cells (24 vertices, 30 tets), clamped at x = 0.
 BEAM = grid_box((0.1, 0.02, 0.02), (5, 1, 1))
@@ -97,6 +97,35 @@ def test_inverted_tets_are_reported_and_raised_the_same_traced_or_not(beam):
     message = _message(lambda: rollout(model, params, state, forces=forces))
     assert message.startswith("step 1: more tets inverted (det F <= 0) than in the initial state")
     _traced_raises(lambda: traced(jnp.asarray(forces)), message)
+
+
+def test_check_trajectory_raises_what_rollout_raises_from_a_program_without_callbacks(beam):
+    """``rollout(..., throw=False)`` under ``jit`` compiles without host callbacks (which
+    would keep the program out of the persistent compilation cache); ``check_trajectory``
+    on its output raises the message ``rollout`` raises."""
+    model, params, state, _ = beam
+    forces = _loads(model, 0, BEAM.regions["tip"].vertices[0], -1e4)
+    message = _message(lambda: rollout(model, params, state, forces=forces))
+    program = jax.jit(lambda f: rollout(model, params, state, forces=f, throw=False))
+    assert "callback" not in program.lower(jnp.asarray(forces)).as_text()
+    assert "callback" in jax.jit(lambda f: rollout(model, params, state, forces=f)).lower(forces).as_text()
+    assert _message(lambda: check_trajectory(model, program(jnp.asarray(forces)))) == message
+    fine = program(jnp.zeros_like(jnp.asarray(forces)))
+    assert check_trajectory(model, fine) is fine
+    with pytest.raises(TypeError, match="computed trajectory"):
+        jax.jit(lambda f: check_trajectory(model, rollout(model, params, state, forces=f, throw=False)).x)(forces)
+
+
+def test_a_matrix_that_is_not_positive_definite_fails_the_first_step(beam):
+    """A negative Young's modulus makes the PD matrix indefinite: the dense factor is NaN
+    (an arithmetic check, no run-time callback) and the first step reports non-finite."""
+    model, params, _, _ = beam
+    bad = params.replace(E=-params.E)
+    state = initial_state(model, bad)
+    traj = rollout(model, bad, state, n_steps=2, throw=False)
+    np.testing.assert_array_equal(traj.info.result, [RESULTS.nonfinite] * 2)
+    message = _message(lambda: rollout(model, bad, state, n_steps=2))
+    assert message.startswith("step 0:") and "not positive definite" in message
 
 
 def test_static_solve_at_its_cap_is_reported_and_raised_the_same_traced_or_not():
