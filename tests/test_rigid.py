@@ -56,11 +56,18 @@ def octahedron():
     return points @ rotation((0.3, -1.0, 0.5), 1.1).T, triangles
 
 
-def test_rotated_box_off_the_origin_matches_formulas():
+def _rotated_brick(t):
+    """A 0.3 x 0.2 x 0.1 box turned about (1, 2, 3) and centred at ``t``: its edges, rotation,
+    mass and inertia tensor (about its centre, in world axes) from the textbook formulas."""
     a, b, c = 0.3, 0.2, 0.1
-    R, t = rotation((1.0, 2.0, 3.0), 0.7), np.array([3.0, -2.0, 5.0])
+    R = rotation((1.0, 2.0, 3.0), 0.7)
     m = RHO * a * b * c
-    expected = R @ np.diag([b * b + c * c, a * a + c * c, a * a + b * b]) @ R.T * m / 12
+    return (a, b, c), R, m, R @ np.diag([b * b + c * c, a * a + c * c, a * a + b * b]) @ R.T * m / 12
+
+
+def test_rotated_box_off_the_origin_matches_formulas():
+    t = np.array([3.0, -2.0, 5.0])
+    (a, b, c), R, m, expected = _rotated_brick(t)
     props = mass_properties(*box((a, b, c), R, t), RHO)
     assert props.mass == pytest.approx(m, rel=1e-8)
     assert props.volume == pytest.approx(a * b * c, rel=1e-8)
@@ -79,11 +86,9 @@ def test_rotated_box_off_the_origin_matches_formulas():
 
 def test_box_far_from_the_origin_keeps_its_digits():
     """Integrals about the origin would cancel ~(1e4 / 0.3)^2 ~ 1e9 times: about 1e-7 left."""
-    a, b, c = 0.3, 0.2, 0.1
-    R, t = rotation((1.0, 2.0, 3.0), 0.7), np.array([1e4, -2e4, 5e3])
-    m = RHO * a * b * c
-    expected = R @ np.diag([b * b + c * c, a * a + c * c, a * a + b * b]) @ R.T * m / 12
-    props = mass_properties(*box((a, b, c), R, t), RHO)
+    t = np.array([1e4, -2e4, 5e3])
+    edges, R, m, expected = _rotated_brick(t)
+    props = mass_properties(*box(edges, R, t), RHO)
     assert props.mass == pytest.approx(m, rel=1e-8)
     assert np.abs(props.inertia - expected).max() <= 1e-8 * np.abs(expected).max()
 
