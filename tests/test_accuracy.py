@@ -210,6 +210,7 @@ def _pd_rollout(dt: float, tol: float):
     return _rollouts[dt, tol]
 
 
+@pytest.mark.slow
 def test_newton_and_pd_reach_the_same_step_solution():
     """First step of the dropped beam: PD (tol 1e-8) and Newton (tol 1e-12) minimise the same
     objective, whose Hessian is at least M / h^2 (the elastic part is positive semidefinite
@@ -358,6 +359,7 @@ def test_newton_hessian_matches_the_objective_gradient(muscle_beam):
         np.testing.assert_allclose(got, expected, rtol=0, atol=1e-10 * np.abs(expected).max())
 
 
+@pytest.mark.slow
 def test_adjoint_hessian_and_parameter_cotangents_match_autodiff_of_the_objective(muscle_beam):
     """The implicit adjoint's two shortcuts equal plain autodiff of the step gradient, to
     round-off: step_hessian (per-tet dP/dF assembled once) against the forward derivative,

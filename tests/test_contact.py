@@ -479,6 +479,7 @@ def test_full_iteration_diverges_with_naive_and_converges_with_default():
 # ----------------------------------------------------------------------------- gradients
 
 
+@pytest.mark.slow
 def test_gradient_through_sliding_contact_matches_finite_differences():
     """d(slide distance)/d(mu_k) and d/d(incline angle): ContactPD's implicit derivative."""
     mesh = grid_box((EDGE,) * 3, (2, 2, 2), origin=(-EDGE / 2, -EDGE / 2, 0.0))

@@ -29,6 +29,7 @@ def quick_demo(tmp_path_factory):
     return out, proc.stdout
 
 
+@pytest.mark.slow
 def test_demo_writes_every_output(quick_demo):
     out, stdout = quick_demo
     for name in OUTPUTS:

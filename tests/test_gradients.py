@@ -93,6 +93,7 @@ def gradients():
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["Implicit", "Unrolled"])
 @pytest.mark.parametrize("kind", KINDS)
 def test_gradient_matches_finite_differences(gradients, mode, kind):
@@ -101,6 +102,7 @@ def test_gradient_matches_finite_differences(gradients, mode, kind):
     assert err["rel_error"] <= 1e-6, err
 
 
+@pytest.mark.slow
 def test_modes_agree(gradients):
     g_imp = gradients["Implicit"][1]
     g_unr = gradients["Unrolled"][1]
@@ -138,6 +140,7 @@ def forward_jacobian(gradients):
     return jac, fd, rev
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("index", range(len(FORWARD_KINDS)), ids=FORWARD_KINDS)
 def test_forward_implicit_jacobian_matches_finite_differences(forward_jacobian, index):
     jac, fd, _ = forward_jacobian
@@ -159,6 +162,7 @@ def _tiny(adjoint, **material):
     return model, params, initial_state(model, params)
 
 
+@pytest.mark.slow
 def test_jacfwd_unrolled_matches_grad():
     model, params, s0 = _tiny(Unrolled())
 
@@ -172,6 +176,7 @@ def test_jacfwd_unrolled_matches_grad():
     np.testing.assert_allclose(fwd, rev, rtol=1e-9)
 
 
+@pytest.mark.slow
 def test_vmap_of_grad_over_two_parameter_sets():
     model, params, s0 = _tiny(Implicit())
 
@@ -186,6 +191,7 @@ def test_vmap_of_grad_over_two_parameter_sets():
     assert not np.allclose(batched[0], batched[1]), "two parameter sets should give two gradients"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("adjoint", [Implicit(), Unrolled()], ids=["implicit", "unrolled"])
 def test_gradient_finite_at_rest(adjoint):
     """From rest with no load every tet stays at F = I: the gradient must be finite (SVD's is NaN)."""
@@ -205,6 +211,7 @@ def test_gradient_finite_at_rest(adjoint):
     assert float(jnp.abs(g.E).max()) < 1e-18  # nothing moves, so E has no influence (up to roundoff)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("adjoint", [Implicit(), Unrolled()], ids=["implicit", "unrolled"])
 def test_gradient_finite_through_inverted_tets(adjoint):
     """A step from a state with inverted tets (the tip face pushed through its cells)."""

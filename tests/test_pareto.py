@@ -113,6 +113,7 @@ def small_front():
     return scene, rows, ref
 
 
+@pytest.mark.slow
 def test_advisor_choice_meets_the_tolerance_when_rerun(small_front):
     """Ask for an error between the best and the worst measured: the advisor must pick a
     set-up that, simulated again from scratch, meets it, and no faster one that meets it."""

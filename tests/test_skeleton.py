@@ -137,6 +137,7 @@ def _max_distance_change(xs, idx):
     return max(np.abs(_pairwise(x[idx]) - ref).max() for x in xs)
 
 
+@pytest.mark.slow
 def test_rigid_pendulum_period_and_rigidity():
     """A 2 cm cube swinging on a revolute joint 11 cm above its centre, all of it bone.
 
@@ -181,6 +182,7 @@ def arm():
     return mesh, skeleton.bind(mesh)
 
 
+@pytest.mark.slow
 def test_two_link_arm_in_soft_skin_keeps_bone_lengths_and_joint_limits(arm):
     """The arm sags under gravity; the shoulder's upper limit (0.01 rad) stops it and
     holds it there, the elbow bends freely; bones stay rigid, the skin deforms."""
@@ -204,6 +206,7 @@ def test_two_link_arm_in_soft_skin_keeps_bone_lengths_and_joint_limits(arm):
     assert _max_distance_change(xs, skin) > 1e-3
 
 
+@pytest.mark.slow
 def test_joint_torque_and_saturated_servo_spin_a_hinged_body():
     """A bone block hinged through its centre of mass, no gravity, driven by a constant
     torque ``tau`` and by a servo far from its target, which applies its torque limit
@@ -228,6 +231,7 @@ def test_joint_torque_and_saturated_servo_spin_a_hinged_body():
     assert float(servo.torques(traj.x[-1], params.actuators[1], jnp.array([3.0]))[0]) == pytest.approx(tau_s)
 
 
+@pytest.mark.slow
 def test_servo_holds_a_joint_at_its_target_against_gravity(arm):
     """The shoulder servo lifts the arm to 0.1 rad above the horizontal; the soft skin and
     gravity pull back, so the servo settles where its torque balances them, slightly
@@ -331,6 +335,7 @@ def test_joint_torque_gradient_matches_finite_differences_over_a_rollout(arm):
 
 
 
+@pytest.mark.slow
 def test_implicit_gradient_of_torques_servos_and_material_matches_finite_differences(arm):
     """The default (Implicit) adjoint in the skeleton's reduced coordinates, over 3 steps of
     the soft arm with a torque on the shoulder and a servo on the elbow: the gradient of the
@@ -364,6 +369,7 @@ def test_implicit_gradient_of_torques_servos_and_material_matches_finite_differe
         assert r["rel_error"] <= 1e-5, (kind, r)
 
 
+@pytest.mark.slow
 def test_two_link_arm_joint_angles_converge_at_first_order_in_dt(arm):
     """The soft arm sagging from rest, run to t = 0.08 s with h = 0.01, 0.005, 0.0025 s:
     implicit Euler is first order, so the joint-angle differences between successive
@@ -385,6 +391,7 @@ def test_two_link_arm_joint_angles_converge_at_first_order_in_dt(arm):
     assert 0.7 < np.log2(coarse / fine) < 1.3, (coarse, fine, angles)
 
 
+@pytest.mark.slow
 def test_jointed_body_sticks_on_an_incline_below_the_friction_angle_and_slides_above_it(arm):
     """The arm (free root, elbow hinge, soft skin) set down on a tilted friction plane.
 
@@ -429,6 +436,7 @@ def test_jointed_body_sticks_on_an_incline_below_the_friction_angle_and_slides_a
     assert acceleration(com, dt, 15) == pytest.approx(expected, rel=0.01)
 
 
+@pytest.mark.slow
 def test_gradient_through_skeleton_contact_matches_central_differences(arm):
     """Reverse mode through SkeletonContactPD: the slide of a jointed body down an incline
     (tan theta = 1.1 mu_s) differentiated with respect to the kinetic friction coefficient,
