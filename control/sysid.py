@@ -45,7 +45,7 @@ import optax
 
 from softbody.gradients import ImplicitForward
 from softbody.model import Model, Params, State, initial_state
-from softbody.simulate import rollout
+from softbody.simulate import RESULTS, rollout
 from softbody.solvers import IterationMethod
 
 from .errors import ControlError
@@ -239,15 +239,29 @@ class SysIdProblem:
         p = self.unpack(jnp.asarray(z))
         return {name: np.asarray(_get(p, name)) for name in self.estimate}
 
-    def residuals(self, z: Array, model: Model | None = None) -> Array:
-        """``(m,)`` scaled misfits ``(x_sim - y) / sigma`` over frames 1..T, markers, coordinates."""
-        obs = self.observation
-        traj = rollout(model or self.model, self.unpack(z), self.state0, obs.controls, obs.forces, obs.n_steps)
-        return ((traj.x[1:, obs.markers] - jnp.asarray(obs.positions[1:])) / self.sigma).ravel()
+    def residuals(self, z: Array, model: Model | None = None, *, throw: bool = True) -> Array:
+        """``(m,)`` scaled misfits ``(x_sim - y) / sigma`` over frames 1..T, markers, coordinates.
 
-    def cost(self, z: Array, model: Model | None = None) -> Array:
-        """``C(z) = |r(z)|^2 / 2``."""
-        r = self.residuals(z, model)
+        Arguments:
+            z: ``(p,)`` variables; model: the model to simulate (default: the problem's).
+            throw: as for :func:`~softbody.simulate.rollout`: raise for a failed step
+                (``True``), or (``False``) return NaN misfits when any step failed. The
+                latter compiles without a host callback, so the persistent compilation
+                cache keeps the program, and suits searches that rank a failed
+                simulation last (CMA-ES, the LM trial steps).
+
+        Raises:
+            SimulationError: with ``throw=True``, a step failed (see ``rollout``).
+        """
+        obs = self.observation
+        traj = rollout(model or self.model, self.unpack(z), self.state0, obs.controls, obs.forces, obs.n_steps,
+                       throw=throw)
+        r = ((traj.x[1:, obs.markers] - jnp.asarray(obs.positions[1:])) / self.sigma).ravel()
+        return r if throw else jnp.where(jnp.all(traj.info.result == int(RESULTS.success)), r, jnp.nan)
+
+    def cost(self, z: Array, model: Model | None = None, *, throw: bool = True) -> Array:
+        """``C(z) = |r(z)|^2 / 2`` (NaN for a failed simulation with ``throw=False``)."""
+        r = self.residuals(z, model, throw=throw)
         return 0.5 * jnp.sum(r * r)
 
 
@@ -354,14 +368,21 @@ def _finish(problem: SysIdProblem, z, best_cost, cost, history, iterations, simu
 def _identify_lm(problem: SysIdProblem, lm_model: Model, n_iter, xtol, callback, progress, start):
     p = int(sum(problem.sizes))
 
+    # throw=False: a trial step whose simulation fails gets NaN residuals and is rejected like
+    # one that raises the cost, and the program holds no host callback (the persistent
+    # compilation cache keeps it).
     @jax.jit
     def residuals_and_jacobian(z):
-        f = lambda z: problem.residuals(z, lm_model)  # noqa: E731
+        f = lambda z: problem.residuals(z, lm_model, throw=False)  # noqa: E731
         r, jt = jax.vmap(lambda t: jax.jvp(f, (z,), (t,)), out_axes=(None, 0))(jnp.eye(p))
         return r, jt.T
 
     z = np.asarray(problem.pack(problem.params))
     r, jac = (np.asarray(a) for a in residuals_and_jacobian(jnp.asarray(z)))
+    if not np.all(np.isfinite(r)):
+        problem.residuals(jnp.asarray(z), lm_model)  # raises SimulationError, naming the failed step
+        raise ControlError("the simulation from the starting values gives non-finite residuals; check the "
+                           "observation and the starting values")
     cost = [0.5 * float(r @ r)]
     history = [problem.values(z)]
     lam, converged, k = 1e-2, False, 0

@@ -5,6 +5,7 @@ Scenes are tiny (a 3-cell clamped beam) so that each compiled objective costs se
 tests that simulate share one scene and, where they can, one compiled objective.
 """
 
+import dataclasses
 import json
 import math
 
@@ -20,7 +21,7 @@ from softbody.material import Material
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, SceneError, build, initial_state
 from softbody.obstacles import Plane
-from softbody.simulate import Trajectory, rollout
+from softbody.simulate import SimulationError, Trajectory, rollout
 from softbody import control as sc
 from softbody.control import ControlError
 
@@ -212,6 +213,7 @@ def test_minimize_resume_is_bitwise_identical(tmp_path):
         sc.minimize(lambda t: jnp.log(t - 2.0), jnp.asarray(1.0), n_iter=2, progress=False)
 
 
+@pytest.mark.slow
 def test_trajopt_reduces_loss_and_resumes_identically(scene, tmp_path):
     model, params = scene
     # Reach a point above the beam's resting tip: the top muscle must contract.
@@ -255,6 +257,22 @@ def test_cmaes_on_a_quadratic_counts_simulations():
 # ------------------------------------------------------------------------ system identification
 
 
+def test_sysid_residuals_without_throw_are_nan_for_a_failed_simulation(scene):
+    """throw=False (the LM fit's and CMA-ES's programs, kept by the compilation cache): a
+    simulation that stops at its iteration cap gives NaN misfits; throw=True raises."""
+    model, params = scene
+    obs = sc.synthesize(model, params, "tip", 2)
+    problem = sc.SysIdProblem(model, params, obs)
+    capped = dataclasses.replace(model, options=dataclasses.replace(model.options, tol=1e-14, max_iter=1))
+    z = problem.pack(params)
+    assert np.all(np.isfinite(np.asarray(problem.residuals(z, throw=False))))
+    assert np.all(np.isnan(np.asarray(problem.residuals(z, capped, throw=False))))
+    assert np.isnan(float(problem.cost(z, capped, throw=False)))
+    with pytest.raises(SimulationError, match="iteration cap"):
+        problem.residuals(z, capped)
+
+
+@pytest.mark.slow
 def test_sysid_recovers_young_modulus(scene):
     model, params = scene
     obs = sc.synthesize(model, params, "tip", 15)  # the beam released under gravity, noise-free
@@ -279,6 +297,7 @@ def test_sysid_recovers_young_modulus(scene):
 # ------------------------------------------------------------------------------ policies
 
 
+@pytest.mark.slow
 def test_policy_training_reduces_loss(scene):
     model, params = scene
     obs = sc.Observations(model, ["tip"], periods=[0.1], length_scale=0.01, velocity_scale=0.1)
@@ -315,6 +334,7 @@ def test_capped_simplex_projection():
     np.testing.assert_allclose(np.asarray(sc.project_capped_simplex(w0, 3.0)), w0, atol=1e-14)
 
 
+@pytest.mark.slow
 def test_codesign_improves_design_and_respects_constraints(scene):
     model, params = scene
     loss = sc.TargetPosition(model, "tip", (0.095, 0.01, 0.02), over=3)
@@ -339,6 +359,7 @@ def test_codesign_improves_design_and_respects_constraints(scene):
         sc.Design(model, params, muscles=[3])
 
 
+@pytest.mark.slow
 def test_muscle_gait_gradient_through_contact_matches_central_differences():
     """Muscle activations differentiate through the contact solver's implicit derivative.
 
