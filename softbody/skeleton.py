@@ -52,7 +52,8 @@ from softbody import rotation as rot
 from softbody.meshing import TetMesh
 from softbody.contact import ContactPD, _contact_step, _nearest_obstacle
 from softbody.model import SceneError
-from softbody.solvers import IterationMethod, Solution, StepProblem, iterate, lbfgs_direction, store_pair
+from softbody.solvers import (IterationMethod, Solution, StepProblem, empty_history, iterate, lbfgs_direction,
+                              store_pair)
 
 Array = jax.Array
 
@@ -865,7 +866,7 @@ class SkeletonPD(IterationMethod):
 
         return embed, solve, 3 * n + k
 
-    def _check(self, problem: StepProblem, x0: Array) -> Array:
+    def _check(self, problem: StepProblem, x0: Array) -> None:
         _check_size(self.rig, x0.shape[0])
         if problem.obstacles:
             raise SkeletonError("SkeletonPD does not handle contact (the body would pass through the scene's "
@@ -874,7 +875,6 @@ class SkeletonPD(IterationMethod):
         if not isinstance(problem.prepared, SchurFactor):
             raise SkeletonError("SkeletonPD needs its per-rollout condensation in problem.prepared; build the "
                                 "step problem with softbody.model.prepare and softbody.objective.solve_step")
-        return x0
 
     def run(self, problem, x0, q0, threshold, max_iter, unrolled=False):
         """Solve one step; see :class:`~softbody.solvers.IterationMethod`.
@@ -882,7 +882,7 @@ class SkeletonPD(IterationMethod):
         ``unrolled=False``: a ``while_loop`` (forward mode only); otherwise a fixed-trip
         loop that reverse mode differentiates as it ran.
         """
-        x0 = self._check(problem, x0)
+        self._check(problem, x0)
         return self._solve(problem, x0, q0, threshold, max_iter, unrolled)
 
     def _solve(self, problem, x0, q0, threshold, max_iter, unrolled):
@@ -958,13 +958,12 @@ class SkeletonPD(IterationMethod):
                 unrolled is not False)
             g_z_new, locked, gnorm = reduced(g_new, pose_new, z_new)
             if m:
-                lbfgs = store_pair(lbfgs, flat(x_new - x, rig.step_taken(z, z_new, -alpha * d_z)), flat(g_new - g, g_z_new - g_z))
+                lbfgs = store_pair(lbfgs, flat(x_new - x, rig.step_taken(z, z_new, -alpha * d_z)),
+                                   flat(g_new - g, g_z_new - g_z))
             return (x_new, z_new, q, phi, g_new, pose_new, g_z_new, locked, gnorm, evals + 1 + tries, k + 1,
                     lbfgs)
 
-        size = 3 * n + rig.n_dofs
-        lbfgs = (jnp.zeros((m, size), x0.dtype), jnp.zeros((m, size), x0.dtype), jnp.zeros(m, x0.dtype),
-                 jnp.asarray(0), jnp.zeros((m, m), x0.dtype))
+        lbfgs = empty_history(m, 3 * n + rig.n_dofs, x0.dtype)
         init = (x0, z0, q0, phi0, g0, pose0, *reduced(g0, pose0, z0), jnp.asarray(1), jnp.asarray(0), lbfgs)
         x, _, q, _, _, _, _, _, gnorm, evals, k, _ = iterate(cond, body, init, max_iter, unrolled)
         return Solution(x, q, k, evals, gnorm)

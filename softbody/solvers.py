@@ -227,6 +227,14 @@ def lbfgs_direction(g: Array, s_hist: Array, y_hist: Array, rho: Array, count: A
     return -(r + (jnp.zeros(m, g.dtype).at[order].set(c) @ s_hist).reshape(g.shape))
 
 
+def empty_history(m: int, size: int, dtype) -> tuple:
+    """An L-BFGS history of ``m`` pairs of ``(size,)`` vectors holding none yet:
+    ``(s_hist, y_hist, rho, count, sy)`` as :func:`lbfgs_direction` and :func:`store_pair`
+    take them."""
+    return (jnp.zeros((m, size), dtype), jnp.zeros((m, size), dtype), jnp.zeros(m, dtype), jnp.asarray(0),
+            jnp.zeros((m, m), dtype))
+
+
 def store_pair(history: tuple, s: Array, y: Array) -> tuple:
     """Add the curvature pair ``(s, y)`` to an L-BFGS history, if ``s . y`` is positive.
 
@@ -274,17 +282,15 @@ class LBFGS(IterationMethod):
 
     def run(self, problem, x0, q0, threshold, max_iter, unrolled=False):
         evaluate, precondition = problem.evaluate, problem.precondition
-        m = self.history
         phi0, g0, q0 = evaluate(x0, q0)
-        n_dof = x0.size
 
         def cond(c):
-            g, k = c[2], c[7]
+            g, k = c[2], c[5]
             return (_norm(g) > threshold) & (k < max_iter)
 
         def body(c):
-            x, phi, g, q, s_hist, y_hist, rho, k, count, evals, sy_hist = c
-            d = lbfgs_direction(g, s_hist, y_hist, rho, count, sy_hist, precondition)
+            x, phi, g, q, history, k, evals = c
+            d = lbfgs_direction(g, *history, precondition)
             d = jax.lax.cond(jnp.sum(g * d) < 0, lambda: d, lambda: -precondition(g))
             slope = jnp.sum(g * d)
             phi_t, g_t, q_t = evaluate(x + d, q)
@@ -295,14 +301,10 @@ class LBFGS(IterationMethod):
                 return (x_f, *evaluate(x_f, q))
 
             x_new, phi_new, g_new, q_new = jax.lax.cond(failed, fallback, lambda: (x + d, phi_t, g_t, q_t))
-            s_hist, y_hist, rho, count, sy_hist = store_pair(
-                (s_hist, y_hist, rho, count, sy_hist), (x_new - x).reshape(-1), (g_new - g).reshape(-1))
+            history = store_pair(history, (x_new - x).reshape(-1), (g_new - g).reshape(-1))
             evals = evals + 1 + failed.astype(evals.dtype)
-            return x_new, phi_new, g_new, q_new, s_hist, y_hist, rho, k + 1, count, evals, sy_hist
+            return x_new, phi_new, g_new, q_new, history, k + 1, evals
 
-        zero = jnp.asarray(0)
-        history = jnp.zeros((m, n_dof), x0.dtype)
-        init = (x0, phi0, g0, q0, history, history, jnp.zeros(m, x0.dtype), zero, zero, zero + 1,
-                jnp.zeros((m, m), x0.dtype))
-        x, _, g, q, _, _, _, k, _, evals, _ = iterate(cond, body, init, max_iter, unrolled)
+        init = (x0, phi0, g0, q0, empty_history(self.history, x0.size, x0.dtype), jnp.asarray(0), jnp.asarray(1))
+        x, _, g, q, _, k, evals = iterate(cond, body, init, max_iter, unrolled)
         return Solution(x, q, k, evals, _norm(g))
