@@ -2,8 +2,10 @@
 
 Both are vertex terms (``energy_and_gradient(x, prep, a)``): their energy is a function of
 the joint coordinates ``theta(x)`` read off the bone positions
-(:meth:`softbody.skeleton.Rig.coordinates`, differentiable). Under
-:class:`~softbody.skeleton.SkeletonPD` the bones follow ``FK(z)``, so
+(:meth:`softbody.skeleton.Rig.coordinates`, differentiable). They act on the skeleton of
+the scene they are built into (``build(..., skeleton=..., actuators=[JointTorque(["elbow"])])``).
+In the skeleton's reduced coordinates (:class:`~softbody.skeleton.Reduced`) the bones follow
+``FK(z)``, so
 ``theta(FK(z)) = z`` and the term's bone gradient mapped by ``B^T`` is exactly
 ``dE/dtheta`` in the joint's row of the reduced right-hand side: a torque ``tau`` is the
 energy ``-tau theta``.
@@ -15,7 +17,8 @@ that range.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import copy
+from dataclasses import dataclass, field
 from typing import Sequence
 
 import equinox as eqx
@@ -24,28 +27,40 @@ import jax.numpy as jnp
 import numpy as np
 
 from softbody._interfaces import VertexActuator
-from softbody.model import SceneError
+from softbody._types import SceneError
 from softbody.skeleton import Prismatic, Revolute, Rig
 
 Array = jax.Array
 
 
-def _joint_dofs(rig: Rig, joints: Sequence[str], what: str) -> np.ndarray:
-    if not isinstance(rig, Rig):
-        raise SceneError(f"{what}: rig must be a softbody.skeleton.Rig (Skeleton.bind(mesh)), got {type(rig).__name__}")
+def _check_joints(joints: Sequence[str], what: str) -> tuple:
+    if isinstance(joints, str):
+        raise SceneError(f"{what}: joints must be a sequence of link names, got the string {joints!r}; "
+                         f"write [{joints!r}]")
     joints = tuple(joints)
     if not joints:
         raise SceneError(f"{what}: name at least one joint (a link with a Revolute or Prismatic joint)")
     if len(set(joints)) != len(joints):
         raise SceneError(f"{what}: joints must be unique, got {list(joints)}")
+    return joints
+
+
+def _bind(term, rig, what: str):
+    """A copy of the joint term ``term`` on the scene's ``rig``, with the dofs of its joints."""
+    if rig is None:
+        raise SceneError(f"{what} drives joints of a skeleton, but the scene has none: pass "
+                         "build(..., skeleton=Skeleton([...]))")
     dofs = []
-    for name in joints:
+    for name in term.joints:
         i = rig.link_index(name)
         if not isinstance(rig.links[i].joint, (Revolute, Prismatic)):
             raise SceneError(f"{what}: link {name!r} has a {type(rig.links[i].joint).__name__} joint; only "
                              "Revolute and Prismatic joints take a torque or force")
         dofs.append(rig.dof_start[i])
-    return np.asarray(dofs)
+    bound = copy.copy(term)
+    object.__setattr__(bound, "rig", rig)
+    object.__setattr__(bound, "dofs", np.asarray(dofs))
+    return bound
 
 
 def _joint_values(rig: Rig, dofs: np.ndarray, x: Array) -> Array:
@@ -60,12 +75,6 @@ def _check_activation(activation: Array, names: tuple[str, ...], what: str) -> A
     return a
 
 
-def _check_rig(rig: Rig, model, what: str) -> None:
-    if model.n_vertices != rig.n_vertices:
-        raise SceneError(f"{what}: the rig was bound to a mesh of {rig.n_vertices} vertices, the scene has "
-                         f"{model.n_vertices}; bind the skeleton to the scene's mesh")
-
-
 @dataclass(frozen=True, eq=False)
 class JointTorque(VertexActuator):
     """Torque (revolute, N m) or force (prismatic, N) on joints: one channel per joint.
@@ -74,19 +83,23 @@ class JointTorque(VertexActuator):
     ``-sum_j tau_j theta_j(x)``, so the joint's reduced right-hand side row gets ``tau_j``.
 
     Attributes:
-        rig: the skeleton bound to the scene's mesh.
-        joints: names of the driven links (their joints).
+        joints: names of the driven links (their joints) in the scene's skeleton.
+        rig: the skeleton bound to the scene's mesh (set by ``build``).
 
     Raises:
-        SceneError: an unknown link, a Free or Fixed joint, duplicates, no joints.
+        SceneError: duplicates, no joints; (in ``build``) an unknown link, a Free or Fixed
+            joint, a scene without a skeleton.
     """
 
-    rig: Rig
     joints: tuple
+    rig: Rig | None = field(default=None, init=False)
 
     def __post_init__(self):
-        object.__setattr__(self, "joints", tuple(self.joints))
-        object.__setattr__(self, "dofs", _joint_dofs(self.rig, self.joints, "JointTorque"))
+        object.__setattr__(self, "joints", _check_joints(self.joints, "JointTorque"))
+
+    def bind(self, rig) -> "JointTorque":
+        """The term on the scene's skeleton (see :meth:`softbody._interfaces.Actuator.bind`)."""
+        return _bind(self, rig, "JointTorque")
 
     @property
     def channel_names(self) -> tuple[str, ...]:
@@ -97,12 +110,7 @@ class JointTorque(VertexActuator):
         return ()
 
     def prepare(self, model, params: tuple, dminv: Array, volume: Array) -> tuple:
-        """No per-rollout data; checks the rig against the model.
-
-        Raises:
-            SceneError: the rig belongs to another mesh.
-        """
-        _check_rig(self.rig, model, "JointTorque")
+        """No per-rollout data."""
         return ()
 
     def energy_and_gradient(self, x: Array, prep: tuple, activation: Array) -> tuple[Array, Array]:
@@ -145,29 +153,32 @@ class JointServo(VertexActuator):
     receive.
 
     Attributes:
-        rig: the skeleton bound to the scene's mesh.
-        joints: names of the servoed links (their joints).
+        joints: names of the servoed links (their joints) in the scene's skeleton.
         stiffness: proportional gain(s), scalar or ``(j,)`` (> 0); initial design values.
         torque_limit: torque limit(s), scalar or ``(j,)`` (> 0, ``inf`` for none).
+        rig: the skeleton bound to the scene's mesh (set by ``build``).
 
     Raises:
         SceneError: bad joints (as :class:`JointTorque`), non-positive gains or limits.
     """
 
-    rig: Rig
     joints: tuple
     stiffness: float | Sequence[float] = 1.0
     torque_limit: float | Sequence[float] = np.inf
+    rig: Rig | None = field(default=None, init=False)
 
     def __post_init__(self):
-        object.__setattr__(self, "joints", tuple(self.joints))
-        object.__setattr__(self, "dofs", _joint_dofs(self.rig, self.joints, "JointServo"))
+        object.__setattr__(self, "joints", _check_joints(self.joints, "JointServo"))
         for name in ("stiffness", "torque_limit"):
             value = np.broadcast_to(np.asarray(getattr(self, name), float), (len(self.joints),)).copy()
             if not np.all(value > 0) or np.isnan(value).any() or (name == "stiffness" and np.isinf(value).any()):
                 raise SceneError(f"JointServo.{name} must be > 0{' and finite' if name == 'stiffness' else ''}, "
                                  f"got {getattr(self, name)!r}")
             object.__setattr__(self, name, value)
+
+    def bind(self, rig) -> "JointServo":
+        """The term on the scene's skeleton (see :meth:`softbody._interfaces.Actuator.bind`)."""
+        return _bind(self, rig, "JointServo")
 
     @property
     def channel_names(self) -> tuple[str, ...]:
@@ -186,12 +197,7 @@ class JointServo(VertexActuator):
         return ServoParams(stiffness=jnp.asarray(self.stiffness), torque_limit=jnp.asarray(self.torque_limit))
 
     def prepare(self, model, params: ServoParams, dminv: Array, volume: Array) -> ServoParams:
-        """The gains are the per-rollout data.
-
-        Raises:
-            SceneError: the rig belongs to another mesh.
-        """
-        _check_rig(self.rig, model, "JointServo")
+        """The gains are the per-rollout data."""
         return params
 
     def torques(self, x: Array, prep: ServoParams, activation: Array) -> Array:

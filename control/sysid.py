@@ -46,7 +46,7 @@ import optax
 from softbody.gradients import ImplicitForward
 from softbody.model import Model, Params, State, initial_state
 from softbody.simulate import RESULTS, rollout
-from softbody.solvers import IterationMethod
+from softbody.solvers import NonlinearSolver
 
 from .errors import ControlError
 from .losses import region_vertices
@@ -306,7 +306,7 @@ def identify(
     method: str = "lm",
     n_iter: int = 20,
     xtol: float = 1e-6,
-    jacobian_method: IterationMethod | None = None,
+    jacobian_solver: NonlinearSolver | None = None,
     optimizer: optax.GradientTransformation | None = None,
     state0: State | None = None,
     callback=None,
@@ -324,8 +324,8 @@ def identify(
         n_iter: iteration cap (LM: simulations; Adam: gradient evaluations).
         xtol: LM stops when a proposed step ``|dz|_inf`` (a relative change of the
             positive quantities) falls below it.
-        jacobian_method: the iteration the LM copy of the model runs (default: the
-            model's own; the implicit tangents do not depend on it).
+        jacobian_solver: the nonlinear solver the LM copy of the model runs (default:
+            the model's own; the implicit tangents do not depend on it).
         optimizer: the optax transformation for ``"adam"`` (default ``optax.adam(0.05)``).
         state0: the initial state (default: the rest shape).
         callback: ``callback(k, values)`` after each iteration with the current estimates.
@@ -352,8 +352,10 @@ def identify(
     start = time.perf_counter()
     if method == "adam":
         return _identify_adam(problem, optimizer, n_iter, callback, progress, start)
-    lm_model = dataclasses.replace(model, options=dataclasses.replace(
-        model.options, adjoint=ImplicitForward(), method=jacobian_method or model.method))
+    solver = jacobian_solver or model.step.solver
+    lm_model = dataclasses.replace(
+        model, options=dataclasses.replace(model.options, adjoint=ImplicitForward(), solver=solver),
+        step=dataclasses.replace(model.step, solver=solver))
     return _identify_lm(problem, lm_model, n_iter, xtol, callback, progress, start)
 
 

@@ -9,10 +9,14 @@
     traj = sb.rollout(model, params, sb.initial_state(model, params), n_steps=50)
 
 Scenes: :func:`build`, :func:`prepare`, :func:`initial_state`, :class:`Material`,
-:class:`Options`, :class:`Model`, :class:`Params`, :class:`State`, :class:`SceneError`.
+:class:`Skeleton`, :class:`Options`, :class:`Model`, :class:`Params`, :class:`State`,
+:class:`SceneError`. A scene owns its physics: ``build(mesh, material, skeleton=...,
+obstacles=[...], actuators=[...])`` composes the step (the skeleton's reduced coordinates,
+contact where there are obstacles); the options choose only numerics.
 Stepping: :func:`rollout`, :func:`step`, :func:`solve_static`, :class:`Trajectory`,
 :class:`StepInfo`, :class:`SimulationError`. Strategies: :class:`LBFGS`,
-:class:`LocalGlobal` (nonlinear iterations), :class:`Implicit`, :class:`ImplicitForward`,
+:class:`LocalGlobal` (nonlinear solvers, ``Options(solver=...)``), :class:`Contact` (the
+contact solver's settings, ``Options(contact=...)``), :class:`Implicit`, :class:`ImplicitForward`,
 :class:`Unrolled` (differentiation), :func:`check_grad`. Parts by module:
 ``sb.meshing`` (geometry -> meshes), ``sb.actuators``, ``sb.obstacles`` (``sb.obstacles.Plane``,
 ...), ``sb.contact`` (the contact solver), ``sb.skeleton``, ``sb.control``, ``sb.linsolve``,
@@ -53,6 +57,8 @@ _NAMES = {
     **dict.fromkeys(("build", "initial_state", "prepare"), "softbody.model"),
     "Material": "softbody.material",
     "RigidBody": "softbody.rigid",
+    "Skeleton": "softbody.skeleton",
+    "Contact": "softbody.contact",
     "RESULTS": "softbody._types",
     **dict.fromkeys(("SimulationError", "Trajectory", "check_trajectory", "rollout", "solve_static", "step"), "softbody.simulate"),
     **dict.fromkeys(("LBFGS", "LocalGlobal"), "softbody.solvers"),

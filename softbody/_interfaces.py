@@ -45,6 +45,16 @@ class Actuator:
         n = len(self.channel_names)
         return np.full(n, -np.inf), np.full(n, np.inf)
 
+    def bind(self, rig) -> "Actuator":
+        """The term as :func:`softbody.model.build` keeps it in a scene whose skeleton,
+        bound to the mesh, is ``rig`` (a :class:`softbody.skeleton.Rig`, or ``None`` for a
+        scene without one). The default returns the term itself.
+
+        Raises:
+            SceneError: the term needs what the scene lacks (e.g. joints without a skeleton).
+        """
+        return self
+
     def init_params(self):
         """The term's differentiable design parameters (a pytree; ``()`` for none)."""
         raise NotImplementedError
@@ -81,4 +91,50 @@ class VolumeActuator(Actuator):
 
     def volume_targets(self, prep, activation):
         """``(tets (m,), s (m,))``: the volume term of those tets targets ``det F = s^3``."""
+        raise NotImplementedError
+
+
+class Coordinates:
+    """The unknowns of an implicit step: how positions are parametrised.
+
+    :class:`softbody.solvers.Vertices` moves every free vertex; a skeleton's
+    :class:`softbody.skeleton.Reduced` places its bones by forward kinematics of joint
+    coordinates. A step (:class:`softbody.solvers.Step`) combines coordinates with a
+    nonlinear solver and, with obstacles, a contact constraint; each method below is
+    what one of those parts needs from the coordinates.
+    """
+
+    def volume_weight(self, solver) -> float:
+        """The scale of the volume term in the prefactored PD matrix for ``solver``."""
+        raise NotImplementedError
+
+    def prepare(self, model, data, factor):
+        """Per-rollout data (a pytree or ``None``) from the PD matrix values ``data``
+        ``(nnz,)`` and their factorisation; handed back as ``problem.prepared``."""
+        raise NotImplementedError
+
+    def implicit_chart(self, prepared, x, free):
+        """The chart in which a step's solution is stationary (see
+        :meth:`softbody.solvers.Step.implicit_chart`); ``None`` for the free vertices."""
+        raise NotImplementedError
+
+    def minimize(self, solver, problem, x0, q0, threshold, max_iter: int, unrolled=False):
+        """Minimise the step objective without contact with ``solver`` in these
+        coordinates; returns a :class:`softbody.solvers.Solution`."""
+        raise NotImplementedError
+
+    def contact_sweep(self, problem, p):
+        """The parts of the contact splitting iteration that depend on the coordinates.
+
+        Arguments:
+            problem: the step's :class:`softbody.solvers.StepProblem`.
+            p: ``(n, 1)`` the splitting's sweep diagonal ``M/h^2 + D``.
+
+        Returns:
+            ``(touching, place, sweep)``: ``touching`` ``(n, 1)`` marks the vertices that
+            the per-vertex contact step moves; ``place(x) -> (x, aux)`` puts an iterate
+            on the coordinates' manifold; ``sweep(x, x_new, g, aux) -> (x_new, r2)``
+            moves the remaining unknowns by their block of the splitting and returns
+            their squared residual ``r2``.
+        """
         raise NotImplementedError

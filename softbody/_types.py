@@ -6,7 +6,8 @@ This is the bottom layer: it imports no strategy (solvers, adjoints, contact) an
 module that builds or steps a scene.
 
 * :class:`Model` is static: topology, fixed vertices, the sparsity pattern of the PD
-  matrix and the maps that assemble it, actuator layouts, solver choices. Changing it
+  matrix and the maps that assemble it, actuator layouts, the skeleton, the composed
+  step (coordinates, constraint, solver) and the solver choices. Changing it
   recompiles. It is compared and hashed by content, so an identical scene built again
   reuses the compiled programs.
 * :class:`Params` is a pytree of everything differentiable: per-material Young's modulus,
@@ -57,10 +58,12 @@ class Options:
         max_iter: iteration cap per step; a step that hits it reports ``converged=False``
             and ``result == RESULTS.max_iterations``, which ``rollout`` raises unless
             called with ``throw=False``.
-        method: the nonlinear iteration: :class:`~softbody.solvers.LBFGS` or
-            :class:`~softbody.solvers.LocalGlobal` (plain PD); ``None`` (default) lets
-            :func:`~softbody.model.build` pick L-BFGS, or the contact solver when the scene
-            has obstacles.
+        solver: the contact-free nonlinear iteration: :class:`~softbody.solvers.LBFGS`
+            or :class:`~softbody.solvers.LocalGlobal` (plain PD); ``None`` (default) lets
+            :func:`~softbody.model.build` pick L-BFGS. It runs in the scene's coordinates
+            (a skeleton's reduced coordinates where the scene has one).
+        contact: the contact solver's settings (:class:`~softbody.contact.Contact`) for a
+            scene with obstacles; ``None`` (default) lets ``build`` use ``Contact()``.
         linear_solver: a :class:`~softbody.linsolve.LinearSolver`; ``None`` lets ``build``
             pick by size.
         rotation_iterations: warm-started Newton steps of the rotation extraction per
@@ -76,7 +79,8 @@ class Options:
     tol: float = 1e-4
     atol: float = 1e-10
     max_iter: int = 200
-    method: IterationMethod | None = None
+    solver: NonlinearSolver | None = None
+    contact: Contact | None = None
     linear_solver: linsolve.LinearSolver | None = None
     rotation_iterations: int = 1
     adjoint: Adjoint | None = None
@@ -199,6 +203,8 @@ class Model:
     channel_names: tuple[str, ...] = ()
     obstacles: tuple = ()  # obstacle objects (see softbody.obstacles)
     stiffness_damping: bool = False  # some material had beta > 0 at build time
+    rig: object = None  # the skeleton bound to the mesh (softbody.skeleton.Rig), or None
+    step: object = None  # the composed step (softbody.solvers.Step) that build resolved
 
     @property
     def n_vertices(self) -> int:
@@ -226,11 +232,6 @@ class Model:
             return np.zeros(0), np.zeros(0)
         return (np.concatenate([np.asarray(lo, np.float64) for lo, _ in bounds]),
                 np.concatenate([np.asarray(hi, np.float64) for _, hi in bounds]))
-
-    @property
-    def method(self) -> IterationMethod:
-        """The nonlinear iteration in use (resolved by :func:`~softbody.model.build`)."""
-        return self.options.method
 
     @property
     def linear_solver(self) -> linsolve.LinearSolver:
@@ -269,7 +270,7 @@ class Prepared(eqx.Module):
     data: Array  # (nnz,) PD matrix values
     factor: object  # linear-solver factor
     inertia: Array  # scalar: 1/h^2 for dynamics, 0 for statics
-    method: object = None  # the iteration method's per-rollout data (IterationMethod.prepare)
+    step: object = None  # the step's per-rollout data (Step.prepare)
 
 
 class RESULTS(enum.IntEnum):

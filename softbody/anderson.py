@@ -13,7 +13,7 @@ to solve ``(I - J) u = b`` when ``rho(J) < 1``.
 
 The acceleration is a heuristic with no convergence guarantee of its own: callers keep
 the best iterate and restart when the residual grows (see
-:class:`softbody.contact.ContactPD`).
+:class:`softbody.contact.Contact`).
 """
 
 from __future__ import annotations

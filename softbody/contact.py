@@ -3,7 +3,7 @@
 The scene's obstacles (signed distance functions with friction and restitution) are
 :mod:`softbody.obstacles`.
 
-**The contact solver** :class:`ContactPD` solves each implicit-Euler step
+**The contact solver** :class:`Contact` solves each implicit-Euler step
 ``min Phi(x)`` subject to non-penetration and Coulomb friction with the design's
 velocity-space splitting iteration::
 
@@ -60,7 +60,7 @@ Scheme, convergence criterion and costs:
   default converged in all, in 4-1384 iterations (median 150; the most for the stiff
   1419-vertex quadruped at ``h`` = 1/30 s).
 * Scenes pay for contact only when they touch: a step where no vertex of ``x_n + h v_n``
-  is within ``margin`` of an obstacle runs ``free_method`` (L-BFGS with the prefactored
+  is within ``margin`` of an obstacle runs the step's contact-free solver (L-BFGS with the prefactored
   PD matrix); if that result penetrates an obstacle the step is redone with contact.
   Contact masks are per-vertex booleans, so shapes are fixed under ``jit``/``vmap``.
 
@@ -85,10 +85,11 @@ import jax.numpy as jnp
 from softbody import anderson
 from softbody.fixed_point import closure_convert, fixed_point
 from softbody.obstacles import check_obstacles, norm, unit
-from softbody.solvers import LBFGS, IterationMethod, Solution, StepProblem
+from softbody._interfaces import Coordinates
+from softbody.solvers import NonlinearSolver, Solution, StepProblem
 from softbody.splitting import Naive, ScaledDiagonal, Splitting
 
-__all__ = ["ContactPD"]
+__all__ = ["Contact"]
 
 
 # --------------------------------------------------------------------------------------
@@ -141,12 +142,17 @@ def _contact_step(y, x_n, v_n, h, frame, free):
 
 
 @dataclass(frozen=True)
-class ContactPD(IterationMethod):
+class Contact:
     """Implicit-Euler steps with contact and dry friction by the splitting iteration.
 
-    See the module docstring for the scheme; in short, each iteration is PD's local step,
-    one sweep of ``(M/h^2 + D) x^{k+1} = b - (L - D) x^k`` and the per-vertex contact
-    step, accelerated by Anderson mixing, until ``|grad Phi - r| <= threshold``.
+    The contact constraint's part of a composed step (:class:`~softbody.solvers.Step`),
+    chosen by :func:`~softbody.model.build` for a scene with obstacles (set
+    ``Options(contact=Contact(...))`` to change its settings). See the module docstring for
+    the scheme; in short, each iteration is PD's local step, one sweep of
+    ``(M/h^2 + D) x^{k+1} = b - (L - D) x^k`` and the per-vertex contact step, accelerated
+    by Anderson mixing, until ``|grad Phi - r| <= threshold``. The step's coordinates
+    decide which unknowns the sweep moves (:meth:`~softbody._interfaces.Coordinates.contact_sweep`);
+    steps that touch nothing run the step's contact-free solver in them.
 
     Attributes:
         splitting: the :class:`~softbody.splitting.Splitting` ``D`` (default
@@ -156,10 +162,9 @@ class ContactPD(IterationMethod):
         history: Anderson history length (0: the plain splitting iteration).
         restart: Anderson restarts when the residual exceeds ``restart`` times the best
             one so far (> 1).
-        margin: a step runs ``free_method`` (no contact work) when every free vertex of
-            ``x_n`` and ``x_n + h v_n`` is farther than ``margin`` (m) from every obstacle;
-            if its result penetrates an obstacle the step is redone with contact.
-        free_method: the contact-free iteration (default :class:`~softbody.solvers.LBFGS`).
+        margin: a step runs the contact-free solver (no contact work) when every free
+            vertex of ``x_n`` and ``x_n + h v_n`` is farther than ``margin`` (m) from every
+            obstacle; if its result penetrates an obstacle the step is redone with contact.
         adjoint_tol, adjoint_max_iter: relative tolerance and iteration cap of the linear
             solve of the implicit derivative (Anderson-accelerated, like the forward solve).
 
@@ -176,40 +181,37 @@ class ContactPD(IterationMethod):
     history: int = 30
     restart: float = 10.0
     margin: float = 1e-6
-    free_method: IterationMethod = field(default_factory=LBFGS)
     adjoint_tol: float = 1e-10
     adjoint_max_iter: int = 20000
 
     def __post_init__(self):
         if not isinstance(self.splitting, Splitting):
             raise ValueError(
-                f"ContactPD.splitting must be a Splitting (Naive(), Diagonal(), ScaledDiagonal()), "
+                f"Contact.splitting must be a Splitting (Naive(), Diagonal(), ScaledDiagonal()), "
                 f"got {self.splitting!r}"
             )
-        if not isinstance(self.free_method, IterationMethod) or isinstance(
-            self.free_method, ContactPD
-        ):
-            raise ValueError(
-                "ContactPD.free_method must be a contact-free IterationMethod, "
-                f"got {self.free_method!r}"
-            )
         if int(self.history) != self.history or self.history < 0:
-            raise ValueError(f"ContactPD.history must be an integer >= 0, got {self.history!r}")
+            raise ValueError(f"Contact.history must be an integer >= 0, got {self.history!r}")
         if not self.restart > 1:
-            raise ValueError(f"ContactPD.restart must exceed 1, got {self.restart!r}")
+            raise ValueError(f"Contact.restart must exceed 1, got {self.restart!r}")
         if not (math.isfinite(self.margin) and self.margin >= 0):
-            raise ValueError(f"ContactPD.margin must be a distance >= 0 (m), got {self.margin!r}")
+            raise ValueError(f"Contact.margin must be a distance >= 0 (m), got {self.margin!r}")
         if not (self.adjoint_tol > 0 and int(self.adjoint_max_iter) >= 1):
-            raise ValueError("ContactPD.adjoint_tol must be > 0 and adjoint_max_iter >= 1")
+            raise ValueError("Contact.adjoint_tol must be > 0 and adjoint_max_iter >= 1")
 
-    def run(
-        self, problem: StepProblem, x0, q0, threshold, max_iter: int, unrolled: bool = False
-    ) -> Solution:
-        """Solve one step with contact; see :class:`~softbody.solvers.IterationMethod`.
+    def run(self, problem: StepProblem, coordinates: Coordinates, solver: NonlinearSolver, x0, q0, threshold,
+            max_iter: int) -> Solution:
+        """Solve one step with contact.
 
         The solve itself is never differentiated: the positions it returns carry the
         implicit derivative of the fixed point (see the module docstring), in forward and
-        reverse mode alike, so ``unrolled`` changes nothing here.
+        reverse mode alike.
+
+        Arguments:
+            problem: the step (:class:`~softbody.solvers.StepProblem`).
+            coordinates: the step's unknowns; solver: its contact-free iteration.
+            x0, q0: ``(n, 3)`` start positions, ``(4, t)`` their rotations.
+            threshold: the force residual to reach; max_iter: the iteration cap.
 
         Returns:
             :class:`~softbody.solvers.Solution` with the positions after the last contact
@@ -221,17 +223,15 @@ class ContactPD(IterationMethod):
             ValueError: the Naive splitting in a static solve (nothing to invert).
         """
         check_obstacles(problem.obstacles)
-        if not problem.obstacles:
-            return self.free_method.run(problem, x0, q0, threshold, max_iter, unrolled)
         if problem.dt == 0 and isinstance(self.splitting, Naive):
             raise ValueError(
                 "the Naive splitting has nothing to invert in a static solve (no mass): "
                 "use ScaledDiagonal() or Diagonal()"
             )
-        fixed_point_map, weight = self._map(problem)
+        fixed_point_map, weight = self.map(problem, coordinates)
         solve, consts = jax.closure_convert(
             lambda x0, q0: self._solve(
-                problem, fixed_point_map, weight, x0, q0, threshold, max_iter
+                problem, coordinates, solver, fixed_point_map, weight, x0, q0, threshold, max_iter
             ),
             x0,
             q0,
@@ -246,24 +246,34 @@ class ContactPD(IterationMethod):
         )
         return sol._replace(x=fixed_point(position, linear_solve, sol.x, sol.q, *consts))
 
-    def _map(self, problem: StepProblem):
-        """The fixed-point map ``(x, q) -> (x_new, q_new, |grad Phi(x) - r|)`` and the Anderson
-        weights ``sqrt(P)`` ``(n * 3,)`` (zero on fixed vertices)."""
+    def map(self, problem: StepProblem, coordinates: Coordinates):
+        """The fixed-point map of one iteration and its Anderson weights.
+
+        Arguments:
+            problem: the step; coordinates: its unknowns.
+
+        Returns:
+            ``(fixed_point_map, weight)``: ``(x, q) -> (x_new, q_new, |grad Phi(x) - r|)``
+            and ``sqrt(P)`` ``(n * 3,)`` (zero on fixed vertices).
+        """
         h = problem.dt
-        free = problem.free
         p = self._sweep_diagonal(problem)
+        touching, place, sweep = coordinates.contact_sweep(problem, p)
         t_end = problem.time + h
 
         def fixed_point_map(x, q):
+            x, aux = place(x)
             _, g, q = problem.evaluate(x, q)
             y = x - g / p  # one splitting sweep
             frame = _nearest_obstacle(problem.obstacles, y, t_end)
             x_new = jnp.where(
-                free > 0, _contact_step(y, problem.x_n, problem.v_n, h, frame, free), x
+                touching > 0, _contact_step(y, problem.x_n, problem.v_n, h, frame, touching), x
             )
-            return x_new, q, norm((p * (x_new - x)).ravel())  # = |grad Phi(x) - r|
+            x_new, rest = sweep(x, x_new, g, aux)
+            residual = norm(jnp.concatenate([(touching * p * (x_new - x)).ravel(), rest]))
+            return x_new, q, residual  # = |grad Phi(x) - r|
 
-        return fixed_point_map, jnp.broadcast_to(jnp.sqrt(p) * free, problem.x_n.shape).ravel()
+        return fixed_point_map, jnp.broadcast_to(jnp.sqrt(p) * problem.free, problem.x_n.shape).ravel()
 
     def _sweep_diagonal(self, problem: StepProblem):
         """``P = M/h^2 + D`` ``(n, 1)`` of the splitting sweep (1 on fixed vertices, which never
@@ -274,7 +284,8 @@ class ContactPD(IterationMethod):
         return jnp.where(problem.free > 0, inertia + self.splitting.diagonal(stiffness), 1.0)
 
     def _solve(
-        self, problem: StepProblem, fixed_point_map, weight, x0, q0, threshold, max_iter: int
+        self, problem: StepProblem, coordinates, solver, fixed_point_map, weight, x0, q0, threshold,
+        max_iter: int
     ) -> Solution:
         """The forward solve: the free-step shortcut, else the splitting iteration."""
 
@@ -292,16 +303,22 @@ class ContactPD(IterationMethod):
             jnp.minimum(clearance(problem.x_n, problem.time), clearance(x0, t_end)) <= self.margin
         )
 
-        def free_step():  # the free method sees no obstacles: it is contact-free by definition
-            sol = self.free_method.run(problem._replace(obstacles=()), x0, q0, threshold, max_iter)
+        def free_step():  # the solver sees no obstacles: it is contact-free by definition
+            return coordinates.minimize(solver, problem._replace(obstacles=()), x0, q0, threshold, max_iter)
 
-            def redo():
-                again = contact()
-                return again._replace(evaluations=again.evaluations + sol.evaluations)
+        def skipped():
+            zero = jnp.asarray(0)
+            return Solution(x0, q0, zero, zero, jnp.asarray(jnp.inf, x0.dtype))
 
-            return jax.lax.cond(clearance(sol.x, t_end) < 0, redo, lambda: sol)
+        # Each branch is traced once: the contact iteration runs when the start is near an
+        # obstacle or when the free step's result penetrates one.
+        sol = jax.lax.cond(near, skipped, free_step)
 
-        return jax.lax.cond(near, contact, free_step)
+        def redo():
+            again = contact()
+            return again._replace(evaluations=again.evaluations + sol.evaluations)
+
+        return jax.lax.cond(near | (clearance(sol.x, t_end) < 0), redo, lambda: sol)
 
     def _iterate(self, fixed_point_map, weight, x0, q0, threshold, max_iter: int) -> Solution:
         """Anderson-accelerated fixed-point iteration; returns the best iterate's map output."""

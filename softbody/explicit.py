@@ -31,7 +31,6 @@ from softbody import rotation as rot
 from softbody.model import Model, Params, State, prepare
 from softbody._types import RESULTS, StepInfo
 from softbody.objective import step_objective
-from softbody.skeleton import SkeletonContactPD, SkeletonPD
 from softbody.simulate import Trajectory, _Messages, _activation, _check_controls, _first_failure, _raise_failure
 
 Array = jax.Array
@@ -105,7 +104,7 @@ def explicit_rollout(model: Model, params: Params, state0: State, controls=None,
 
     Raises:
         SceneError: bad control or force shapes.
-        ValueError: a scene with obstacles or a skeleton method.
+        ValueError: a scene with obstacles or a skeleton.
         SimulationError: with ``throw=True``, the state became non-finite (the step
             exceeded the stability limit, see :func:`critical_time_step`); names the first
             bad step. Traced, the same message is raised at run time as an equinox error.
@@ -113,7 +112,7 @@ def explicit_rollout(model: Model, params: Params, state0: State, controls=None,
     if model.obstacles:
         raise ValueError("explicit_rollout has no contact handling: build the scene without obstacles, "
                          "or use softbody.simulate.rollout")
-    if isinstance(model.method, (SkeletonPD, SkeletonContactPD)):
+    if model.rig is not None:
         raise ValueError("explicit_rollout has no joint constraints: use softbody.simulate.rollout for skeletons")
     controls, forces, n_steps = _check_controls(model, controls, forces, n_steps)
     xs, vs, bad = _explicit(model, params, state0, controls, forces, n_steps, model.options.dt)

@@ -15,9 +15,8 @@ forward map does, its iteration matrix being ``dF/dx``) inside
 exact for the computed contact state up to the forward tolerance; it is the derivative
 of a piecewise-smooth map, so it does not see a vertex about to switch state (at the
 stick/slip threshold the true derivative jumps). Norms and normalisations are guarded at
-zero, so no NaN arises at rest or at zero slip. It is used when the step is
-differentiated through the method (:class:`softbody.gradients.Unrolled`, forward or
-reverse mode); costs one linear fixed-point solve per step and no taped iterations.
+zero, so no NaN arises at rest or at zero slip. It is the implicit derivative of every step with contact, in forward and reverse mode
+(:func:`softbody.model.build` refuses :class:`softbody.gradients.Unrolled` there); costs one linear fixed-point solve per step and no taped iterations.
 """
 
 from __future__ import annotations

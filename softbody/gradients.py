@@ -16,8 +16,8 @@ Two modes, both exact for what they differentiate (set ``Options(adjoint=...)``)
   forward tolerance must be tight for it to match finite differences of the computed
   trajectory (``tol`` <= 1e-8 gives ~1e-6 agreement in the tests; at DiffPD's 1e-4
   the forward error, not the adjoint, dominates). Where the solution is stationary only
-  in other coordinates (a skeleton's bones carry joint forces), the iteration method
-  supplies a chart ``x = embed(d)`` (:meth:`~softbody.solvers.IterationMethod.implicit_chart`)
+  in other coordinates (a skeleton's bones carry joint forces), the step's coordinates
+  supply a chart ``x = embed(d)`` (:meth:`~softbody.solvers.Step.implicit_chart`)
   and the same argument runs in ``d`` with the Hessian of ``Phi(embed(d))``. Per step the
   backward pass keeps the step's inputs and solution, not its rotations (the solution's
   are recomputed from positions). Contact scenes use the contact solver's own derivative.
@@ -224,8 +224,8 @@ def _zero_tangent(a):
 class _StepSystem(NamedTuple):
     """One step's stationarity system at its solution ``xs``, shared by both implicit modes.
 
-    With ``g(x; theta)`` the step gradient (zero at ``xs`` on the free vertices, or, with an
-    iteration method's chart ``x = embed(d)``, zero in the chart's coordinates ``d``),
+    With ``g(x; theta)`` the step gradient (zero at ``xs`` on the free vertices, or, with the
+    coordinates' chart ``x = embed(d)``, zero in the chart's coordinates ``d``),
     ``push(hvp^-1 pull(b))`` applies the inverse of its Hessian to ``b`` ``(n, 3)``:
     reverse mode applies it to a cotangent of ``xs``, forward mode to ``-dg/dtheta
     theta_dot``. Without a chart, ``pull`` masks the fixed vertices and ``push`` is the
@@ -256,7 +256,7 @@ class _StepSystem(NamedTuple):
             return evaluate(x, qs)[1]
 
         args = (prep, x_n, v_n, q_n, activation, force)
-        chart = model.method.implicit_chart(jax.lax.stop_gradient(prep.method), xs, free)
+        chart = model.step.implicit_chart(jax.lax.stop_gradient(prep.step), xs, free)
         if chart is None:
             factor = jax.lax.stop_gradient(prep.factor)
             solver, pattern = model.linear_solver, model.pattern

@@ -1,7 +1,11 @@
-"""Scene compilation: ``TetMesh`` + materials + options -> static ``Model`` + traced ``Params``.
+"""Scene compilation: ``TetMesh`` + materials + skeleton + obstacles + options -> static
+``Model`` + traced ``Params``.
 
-:func:`build` checks a scene and resolves its defaults once (the nonlinear iteration, the
-linear solver, the adjoint); :func:`prepare` computes everything that depends on
+:func:`build` checks a scene and resolves its defaults once: it composes the step from the
+scene (the coordinates: plain vertices, or the skeleton's reduced coordinates; the
+constraint: contact where there are obstacles) and the options (the nonlinear solver, the
+linear solver, the adjoint), and refuses a combination it does not support before anything
+compiles; :func:`prepare` computes everything that depends on
 ``Params`` (rest-shape operators, volumes, masses, weights, the PD matrix and its
 factorisation), once per rollout; :func:`initial_state` makes a :class:`State`. The data
 types themselves live in :mod:`softbody._types`.
@@ -19,12 +23,13 @@ import numpy as np
 from softbody import linsolve, rotation
 from softbody._interfaces import Actuator, ElementActuator
 from softbody._types import Model, Options, Params, Prepared, SceneError, State
-from softbody.contact import ContactPD
+from softbody.contact import Contact
 from softbody.elastic import deformation_gradient, local_matrices, rest_geometry
-from softbody.gradients import Implicit
+from softbody.gradients import Adjoint, Implicit, Unrolled
 from softbody.material import Material, pd_weights
 from softbody.meshing import TetMesh
-from softbody.solvers import LBFGS
+from softbody.skeleton import Reduced, Rig, Skeleton, SkeletonError
+from softbody.solvers import LBFGS, NonlinearSolver, Step, Vertices
 
 Array = jax.Array
 
@@ -75,11 +80,53 @@ def _materials(mesh: TetMesh, material) -> tuple[tuple[str, ...], list[Material]
     return tuple(names), mats, tet_material
 
 
+def _rig(mesh: TetMesh, skeleton, free: np.ndarray) -> Rig | None:
+    """The skeleton bound to the mesh (``None`` without one), with no fixed bone vertex."""
+    if skeleton is None:
+        return None
+    if not isinstance(skeleton, Skeleton):
+        raise SceneError(f"skeleton must be a softbody.skeleton.Skeleton, got {type(skeleton).__name__}")
+    rig = skeleton.bind(mesh)
+    if not np.all(free[rig.bone]):
+        raise SkeletonError("some bone vertices are fixed; bones move with their joints (weld a bone to the "
+                            "world with a root Fixed() joint instead)")
+    return rig
+
+
+def _compose(options: Options, rig: Rig | None, obstacles: tuple) -> Step:
+    """The step of a scene: its coordinates, its contact constraint and the solver, checked
+    together (every refusal here happens before anything compiles)."""
+    coordinates = Vertices() if rig is None else Reduced(rig)
+    solver = options.solver if options.solver is not None else LBFGS()
+    if not isinstance(solver, NonlinearSolver):
+        raise SceneError(f"Options.solver must be a nonlinear solver (softbody.solvers.LBFGS() or LocalGlobal()), "
+                         f"got {solver!r}")
+    if not isinstance(solver, coordinates.solvers):
+        where = "a scene with a skeleton" if rig is not None else "this scene"
+        raise SceneError(f"{where} runs the solvers {[c.__name__ for c in coordinates.solvers]}, not "
+                         f"{type(solver).__name__}; pass one of them as Options(solver=...)")
+    if options.contact is not None and not isinstance(options.contact, Contact):
+        raise SceneError(f"Options.contact must be a softbody.contact.Contact, got {options.contact!r}")
+    if options.contact is not None and not obstacles:
+        raise SceneError("Options.contact sets the contact solver, but the scene has no obstacles: add "
+                         "obstacles=[...] to build, or leave Options.contact at None")
+    if not isinstance(options.adjoint, Adjoint):
+        raise SceneError(f"Options.adjoint must be Implicit(), ImplicitForward() or Unrolled(), got "
+                         f"{options.adjoint!r}")
+    if obstacles and isinstance(options.adjoint, Unrolled):
+        raise SceneError("Unrolled differentiates the iterations as they ran, but a step with contact is "
+                         "differentiated through the fixed point of its contact iteration "
+                         "(softbody.fixed_point); use the default adjoint, Implicit() (or ImplicitForward())")
+    contact = (options.contact or Contact()) if obstacles else None
+    return Step(coordinates, solver, contact)
+
+
 def build(
     mesh: TetMesh,
     material: Material | Mapping[str, Material] = Material(),
     *,
     fixed: str | Sequence[int] | Callable | None = None,
+    skeleton: Skeleton | None = None,
     options: Options = Options(),
     actuators: Sequence = (),
     obstacles: Sequence = (),
@@ -92,6 +139,9 @@ def build(
             (``"default"`` for the rest).
         fixed: the clamped vertices: a region name, vertex indices, a predicate
             ``points (n, 3) -> bool mask (n,)``, or ``None`` for a free body.
+        skeleton: a :class:`~softbody.skeleton.Skeleton` over ``bone:`` regions of the
+            mesh, or ``None``; the scene then steps in its reduced coordinates
+            (``model.rig`` is the skeleton bound to the mesh).
         options: :class:`Options`.
         actuators: actuator terms (see :mod:`softbody.actuators`).
         obstacles: obstacles for contact and friction (see :mod:`softbody.obstacles`).
@@ -100,7 +150,9 @@ def build(
         ``(model, params)``.
 
     Raises:
-        SceneError: unknown regions, an empty fixed selection, actuators with no tets, ...
+        SceneError: unknown regions, an empty fixed selection, actuators with no tets, a
+            combination of scene and options that the step does not support, ...
+        SkeletonError: a skeleton that does not fit the mesh, or a fixed bone vertex.
         ValueError: bad material values (from :class:`Material`).
     """
     if not isinstance(mesh, TetMesh):
@@ -125,28 +177,30 @@ def build(
     local_to_data[keep] = index[: keep.sum()]
     diag_to_data = np.asarray(index[keep.sum():], np.int32)
 
-    terms = tuple(actuators)
+    rig = _rig(mesh, skeleton, free)
+    terms = []
     channels: list[str] = []
-    for i, term in enumerate(terms):
+    for i, term in enumerate(actuators):
         if not isinstance(term, Actuator):
             raise SceneError(f"actuators[{i}] is a {type(term).__name__}, not an actuator; give terms from "
                              "softbody.actuators (Muscle, CavityPressure, CavityVolume, PneumaticCells, "
                              "JointTorque, JointServo) or subclasses of softbody._interfaces.Actuator")
+        terms.append(term.bind(rig))
         channels.extend(term.channel_names)
     if len(set(channels)) != len(channels):
         raise SceneError(f"actuator channel names must be unique, got {channels}")
 
+    adjoint = options.adjoint if options.adjoint is not None else Implicit()
     options = dataclasses.replace(
-        options,
-        method=options.method if options.method is not None else (ContactPD() if obstacles else LBFGS()),
-        linear_solver=options.linear_solver or linsolve.auto_solver(pattern.n),
-        adjoint=options.adjoint if options.adjoint is not None else Implicit())
+        options, linear_solver=options.linear_solver or linsolve.auto_solver(pattern.n), adjoint=adjoint)
+    step = _compose(options, rig, tuple(obstacles))
+    options = dataclasses.replace(options, solver=step.solver, contact=step.contact)
     model = Model(
         mesh=mesh, options=options, material_names=names, tet_material=tet_material,
         fixed=fixed_idx, free_mask=free.astype(np.float64)[:, None], pattern=pattern,
-        local_to_data=local_to_data, diag_to_data=diag_to_data, terms=terms,
+        local_to_data=local_to_data, diag_to_data=diag_to_data, terms=tuple(terms),
         channel_names=tuple(channels), obstacles=tuple(obstacles),
-        stiffness_damping=any(m.beta > 0 for m in mats),
+        stiffness_damping=any(m.beta > 0 for m in mats), rig=rig, step=step,
     )
     params = Params(
         E=jnp.asarray([m.E for m in mats], jnp.float64),
@@ -194,7 +248,7 @@ def prepare(model: Model, params: Params, *, static: bool = False) -> Prepared:
 
     For dynamics the matrix is ``(1/h^2 + alpha/h) M + sum_e V_e (w_s + gamma w_v + beta w_s / h)
     G_e G_e^T + actuator terms``; for statics (``static=True``) the mass and damping parts
-    are left out. ``gamma`` is the iteration method's ``volume_weight``: 1 for plain PD
+    are left out. ``gamma`` is the step's ``volume_weight``: 1 for plain PD
     (its convergence proof needs the true weights), less for L-BFGS, where the matrix is
     only the initial Hessian and a softer volume weight approximates the bending
     stiffness better. Differentiable in ``params``; call it once per rollout.
@@ -211,10 +265,10 @@ def prepare(model: Model, params: Params, *, static: bool = False) -> Prepared:
     x_rest = jnp.asarray(model.mesh.points) + params.morph
 
     if static:
-        inertia, weight = jnp.asarray(0.0), w_s + model.method.volume_weight * w_v
+        inertia, weight = jnp.asarray(0.0), w_s + model.step.volume_weight * w_v
         diag_mass = jnp.zeros_like(mass)
     else:
-        inertia, weight = jnp.asarray(1.0 / h**2), w_s + model.method.volume_weight * w_v + w_b / h
+        inertia, weight = jnp.asarray(1.0 / h**2), w_s + model.step.volume_weight * w_v + w_b / h
         diag_mass = mass / h**2 + mass_alpha / h
     local = local_matrices(dminv, volume * weight)  # (t, 4, 4)
     term_prep = tuple(term.prepare(model, p, dminv, volume) for term, p in zip(model.terms, params.actuators))
@@ -228,4 +282,4 @@ def prepare(model: Model, params: Params, *, static: bool = False) -> Prepared:
     return Prepared(dminv=dminv, volume=volume, mass=mass[:, None], mass_alpha=mass_alpha[:, None],
                     w_s=w_s, w_v=w_v, w_b=w_b, x_rest=x_rest, terms=term_prep,
                     obstacles=tuple(params.obstacles), data=data,
-                    factor=factor, inertia=inertia, method=model.method.prepare(model, data, factor))
+                    factor=factor, inertia=inertia, step=model.step.prepare(model, data, factor))

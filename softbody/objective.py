@@ -215,7 +215,7 @@ def step_gradient_vjp(model: Model, prep: Prepared, x_n, v_n, q_n, activation, f
 
 def solve_step(model: Model, prep: Prepared, state: State, activation, force, *, static: bool,
                unrolled=False) -> tuple[Solution, StepInfo]:
-    """Run the model's iteration method on one step (or a static solve).
+    """Run the model's composed step (:class:`softbody.solvers.Step`) on one step (or a static solve).
 
     ``unrolled=Unroll(extra=k)`` runs a fixed-trip loop that reverse-mode autodiff
     differentiates as it ran, with ``k`` iterations after convergence (see
@@ -234,14 +234,14 @@ def solve_step(model: Model, prep: Prepared, state: State, activation, force, *,
         matvec=lambda x: pattern.matvec(prep.data, x),
         diagonal=prep.data[jnp.asarray(model.diag_to_data)][:, None],
         x_n=state.x, v_n=state.v, mass=prep.mass, free=free, dt=0.0 if static else opts.dt,
-        time=state.t, obstacles=tuple(zip(model.obstacles, prep.obstacles)), prepared=prep.method)
+        time=state.t, obstacles=tuple(zip(model.obstacles, prep.obstacles)), prepared=prep.step)
     x0 = state.x if static else jnp.where(free > 0, state.x + opts.dt * state.v, state.x)
     if static:
         # Actuators may load a body with no external force: measure the residual against
         # the load and the initial force imbalance together.
         scale = scale + jnp.sqrt(jnp.sum(evaluate(x0, state.rot)[1] ** 2))
     threshold = opts.tol * scale + opts.atol
-    sol = model.method.run(problem, x0, state.rot, threshold, opts.max_iter, unrolled)
+    sol = model.step.run(problem, x0, state.rot, threshold, opts.max_iter, unrolled)
     inverted = jnp.sum(rot.det3(deformation_gradient(model, prep.dminv, sol.x)) <= 0)
     inverted0 = jnp.sum(rot.det3(deformation_gradient(model, prep.dminv, state.x)) <= 0)
     converged = sol.gnorm <= threshold

@@ -24,16 +24,17 @@ origin ``o = T_parent(o_rest)`` this is ``w x (x - o)`` (revolute) or ``w`` (pri
 evaluated at the vertex's world position ``x``, which already holds the suffix product.
 So the Jacobian needs the prefix transforms only, computed top-down in one pass.
 
-The reduced implicit step (:class:`SkeletonPD`) minimises the ordinary step objective
-``Phi(x)`` over the free vertices and ``z``, bones placed by ``FK(z)``; its search
-direction solves the PD matrix ``A`` restricted to the skeleton's motions::
+A scene with a skeleton (``build(..., skeleton=...)``) steps in the reduced coordinates
+:class:`Reduced`: the ordinary step objective ``Phi(x)`` is minimised over the free
+vertices and ``z``, bones placed by ``FK(z)``; the search direction solves the PD matrix
+``A`` restricted to the skeleton's motions::
 
     [[Q_ff,     Q_fr B  ], [d_f]   [g_f    ]
      [B^T Q_rf, B^T Q_rr B]] [d_z] = [B^T g_r]
 
-by a Schur complement on the bone block (see :func:`schur_factor`). With obstacles,
-:class:`SkeletonContactPD` runs the contact solver's splitting iteration with the skeleton
-swept in its reduced coordinates (contact and dry friction act on the soft skin). Joint torques are
+by a Schur complement on the bone block (see :func:`schur_factor`). With obstacles, the
+contact solver's splitting iteration runs with the skeleton swept in its reduced
+coordinates (contact and dry friction act on the soft skin). Joint torques are
 the vertex terms of :mod:`softbody.actuators.joints`: their gradient on the bone
 vertices, mapped by ``B^T``, is exactly minus the torque in the joint's row.
 """
@@ -50,9 +51,9 @@ import numpy as np
 
 from softbody import rotation as rot
 from softbody.meshing import TetMesh
-from softbody.contact import ContactPD, _contact_step, _nearest_obstacle
-from softbody.model import SceneError
-from softbody.solvers import (IterationMethod, Solution, StepProblem, empty_history, iterate, lbfgs_direction,
+from softbody._interfaces import Coordinates
+from softbody._types import SceneError
+from softbody.solvers import (LBFGS, LocalGlobal, Solution, StepProblem, empty_history, iterate, lbfgs_direction,
                               store_pair)
 
 Array = jax.Array
@@ -723,11 +724,6 @@ def _held(rig: Rig, z: Array, g_z: Array) -> Array:
     return (((value <= lower) & (g_z > 0)) | ((value >= upper) & (g_z < 0))).astype(g_z.dtype)
 
 
-def _check_size(rig: Rig, n: int) -> None:
-    if n != rig.n_vertices:
-        raise SkeletonError(f"the rig was bound to a mesh of {rig.n_vertices} vertices, the scene has {n}")
-
-
 def _solve_reduced(factor: SchurFactor, rig: Rig, pose: Pose, g_f: Array, g_z: Array,
                    locked: Array) -> tuple[Array, Array]:
     """Solve the reduced PD system for the right-hand side ``(g_f, g_z)`` (``g_f`` ``(n, 3)``
@@ -775,67 +771,83 @@ def schur_direction(factor: SchurFactor, rig: Rig, z: Array, g: Array, locked: A
     return _solve_reduced(factor, rig, pose, g.at[bone].set(0.0), rig.reduce(pose, g[bone]), locked)
 
 
-@dataclass(frozen=True, eq=False)
-class SkeletonPD(IterationMethod):
-    """Implicit steps with rigid bones in reduced coordinates (see the module docstring).
+@dataclass(frozen=True)
+class Reduced(Coordinates):
+    """A skeleton's reduced coordinates: the soft vertices and the joint coordinates ``z``,
+    bones placed by ``FK(z)`` (see the module docstring). :func:`~softbody.model.build`
+    chooses them for a scene with a skeleton.
 
-    Each iteration evaluates ``Phi`` and its gradient at ``x = assemble(x_free, FK(z))``,
-    forms the reduced gradient ``(g_f, B^T g_r)``, takes the L-BFGS direction in the reduced
-    coordinates with the reduced PD solve (:func:`schur_direction`) as its initial inverse
-    Hessian, and backtracks (halving) until Armijo's condition holds. The PD matrix holds
-    the elastic and inertial terms only; the quasi-Newton pairs add the curvature of the
-    rest, chiefly joint servos, whose stiffness in joint space can exceed the condensed
-    matrix's by orders of magnitude (a servo of 50 N m/rad on a soft arm: 200 plain
-    reduced-PD iterations ended at a residual of 8.6e-4, the L-BFGS iteration converges).
-    A direction that does not descend is replaced by the plain reduced PD direction.
-    Updates stay on the manifold (:meth:`Rig.retract`); a joint at a limit whose gradient
-    pushes it outward is held for that iteration. The step starts from ``z`` fitted to the
-    inertial prediction ``x_n + h v_n`` of the bones (:meth:`Rig.coordinates`), so no state
-    beyond the positions is needed. The condensation (:func:`schur_factor`) depends on the
-    PD matrix only: it is made once per rollout (:meth:`prepare`).
+    **Without contact** (:meth:`minimize`) each iteration evaluates ``Phi`` and its gradient
+    at ``x = assemble(x_free, FK(z))``, forms the reduced gradient ``(g_f, B^T g_r)``, takes
+    the L-BFGS direction in the reduced coordinates (the solver's ``history`` pairs;
+    :class:`~softbody.solvers.LocalGlobal` keeps none) with the reduced PD solve
+    (:func:`schur_direction`) as its initial inverse Hessian, and backtracks (halving)
+    until Armijo's condition holds. The PD matrix holds the elastic and inertial terms
+    only; the quasi-Newton pairs add the curvature of the rest, chiefly joint servos,
+    whose stiffness in joint space can exceed the condensed matrix's by orders of
+    magnitude (a servo of 50 N m/rad on a soft arm: 200 plain reduced-PD iterations ended
+    at a residual of 8.6e-4, the L-BFGS iteration converges). A direction that does not
+    descend is replaced by the plain reduced PD direction. Updates stay on the manifold
+    (:meth:`Rig.retract`); a joint at a limit whose gradient pushes it outward is held for
+    that iteration. The step starts from ``z`` fitted to the inertial prediction
+    ``x_n + h v_n`` of the bones (:meth:`Rig.coordinates`), so no state beyond the
+    positions is needed. The condensation (:func:`schur_factor`) depends on the PD matrix
+    only: it is made once per rollout (:meth:`prepare`). The PD matrix is prefactored with
+    the true volume weight (``volume_weight = 1``), for which the PD model majorises the
+    elastic energy.
 
-    Attributes:
-        rig: the :class:`Rig` (skeleton bound to the scene's mesh).
-        backtracks: the most halvings of a step (static).
-        history: the number of stored L-BFGS curvature pairs (static; 0 for the plain
-            reduced PD direction).
+    **With contact** (:meth:`contact_sweep`, run by :class:`~softbody.contact.Contact`)
+    each iteration fits ``z`` to the iterate's bones and places them by ``FK(z)``, evaluates
+    the local step, then sweeps
 
-    The PD matrix is prefactored with the true volume weight (``volume_weight = 1``), for
-    which the PD model majorises the elastic energy.
+    * the soft vertices as in vertex coordinates: ``y = x - P^{-1} g``, followed by the
+      per-vertex contact step (stick or slide, non-penetration);
+    * the skeleton with its block of the same splitting:
+      ``z <- retract(z, -(B^T P_b B)^{-1} B^T g_b)``, ``P_b`` the bone vertices' ``P``,
+      ``B`` the FK Jacobian; a joint at a limit pushed outward is held.
 
-    Gradients: both modes. :class:`~softbody.gradients.Implicit` (the default) uses the
+    Convergence carries over from :class:`~softbody.splitting.ScaledDiagonal`'s theorem:
+    with ``T = diag(I, B)`` the reduced matrices are ``T^T L T`` and ``T^T (M/h^2 + D) T``,
+    the latter block diagonal (``D`` is diagonal), and ``L <= 4 diag(L)`` gives
+    ``T^T L T <= 2 T^T D T``, so the frozen-projection iteration matrix again has its
+    eigenvalues in ``[-beta, beta]``, ``beta < 1`` (``B^T M_b B > 0`` as every bone has a
+    volume). The residual is ``|P (x_new - x)|`` over the soft vertices together with the
+    reduced force ``|B^T g_b|`` of the joints free to move: zero exactly at the step's
+    equilibrium with contact. Contact acts on the soft vertices: bones are meant to lie
+    inside the skin.
+
+    Gradients: both adjoints. :class:`~softbody.gradients.Implicit` (the default) uses the
     reduced coordinates as its chart (:meth:`implicit_chart`): the step's solution is
     stationary in ``(x_free, z)``, not in the bone vertices (they carry the joints'
     constraint forces), and the adjoint system is preconditioned with the same Schur
     condensation as the forward step. :class:`~softbody.gradients.Unrolled`
-    differentiates the iterations as they ran.
+    differentiates the iterations as they ran. With contact the returned positions carry
+    the implicit derivative of the contact fixed point (tested against central
+    differences on a jointed body sliding down an incline, d slide / d mu_k).
+
+    Attributes:
+        rig: the :class:`Rig` (the scene's skeleton bound to its mesh).
+        backtracks: the most halvings of a step (static).
 
     Raises:
-        SkeletonError: (in ``prepare``) a bone vertex is fixed; (in ``run``) the rig was
-            bound to a mesh of another size, or the scene has obstacles (use
-            :class:`SkeletonContactPD`).
+        SkeletonError: a bad attribute.
     """
 
+    solvers = (LBFGS, LocalGlobal)
     rig: Rig
     backtracks: int = 8
-    history: int = 10
 
     def __post_init__(self):
         if not isinstance(self.rig, Rig):
-            raise SkeletonError(f"SkeletonPD.rig must be a Rig (Skeleton.bind(mesh)), got {type(self.rig).__name__}")
-        for name in ("backtracks", "history"):
-            value = getattr(self, name)
-            if int(value) != value or value < 0:
-                raise SkeletonError(f"SkeletonPD.{name} must be an integer >= 0, got {value!r}")
+            raise SkeletonError(f"Reduced.rig must be a Rig (Skeleton.bind(mesh)), got {type(self.rig).__name__}")
+        if int(self.backtracks) != self.backtracks or self.backtracks < 0:
+            raise SkeletonError(f"Reduced.backtracks must be an integer >= 0, got {self.backtracks!r}")
 
-    def prepare(self, model, data, factor) -> SchurFactor | None:
-        """The :class:`SchurFactor` of the scene's PD matrix (``None`` for a mesh of another
-        size; :meth:`run` then reports the mismatch)."""
-        if model.n_vertices != self.rig.n_vertices:
-            return None
-        if np.any(model.free_mask[self.rig.bone] == 0):
-            raise SkeletonError("some bone vertices are fixed; bones move with their joints (weld a bone to the "
-                                "world with a root Fixed() joint instead)")
+    def volume_weight(self, solver) -> float:
+        return 1.0
+
+    def prepare(self, model, data, factor) -> SchurFactor:
+        """The :class:`SchurFactor` of the scene's PD matrix."""
         return schur_factor(model.linear_solver, model.pattern, data, self.rig)
 
     def implicit_chart(self, prepared, x, free):
@@ -843,7 +855,7 @@ class SkeletonPD(IterationMethod):
         about the solution ``x``: ``embed(d)`` moves the soft vertices by ``d_f`` and the
         bones to ``FK(retract(z, d_z))``; joints at a limit are held (their ``d_z`` rows
         are masked out). The preconditioner solves the reduced PD system (:func:`schur_direction`).
-        See :meth:`IterationMethod.implicit_chart <softbody.solvers.IterationMethod.implicit_chart>`."""
+        See :meth:`softbody.solvers.Step.implicit_chart`."""
         rig, n, k = self.rig, x.shape[0], self.rig.n_dofs
         bone = jnp.asarray(rig.bone)
         soft = free * (1.0 - rig.is_bone)
@@ -866,32 +878,50 @@ class SkeletonPD(IterationMethod):
 
         return embed, solve, 3 * n + k
 
-    def _check(self, problem: StepProblem, x0: Array) -> None:
-        _check_size(self.rig, x0.shape[0])
-        if problem.obstacles:
-            raise SkeletonError("SkeletonPD does not handle contact (the body would pass through the scene's "
-                                "obstacles); use Options(method=SkeletonContactPD(rig)), which runs SkeletonPD "
-                                "on the steps that touch nothing")
-        if not isinstance(problem.prepared, SchurFactor):
-            raise SkeletonError("SkeletonPD needs its per-rollout condensation in problem.prepared; build the "
-                                "step problem with softbody.model.prepare and softbody.objective.solve_step")
+    def contact_sweep(self, problem, p):
+        """The soft vertices take the contact step; the skeleton sweeps its block (see the
+        class docstring). See :meth:`softbody._interfaces.Coordinates.contact_sweep`."""
+        rig = self.rig
+        bone = jnp.asarray(rig.bone)
+        p_bone = p[bone, 0]
 
-    def run(self, problem, x0, q0, threshold, max_iter, unrolled=False):
-        """Solve one step; see :class:`~softbody.solvers.IterationMethod`.
+        def place(x):
+            z = rig.coordinates(x[bone])
+            pose = rig.pose(z)
+            return x.at[bone].set(pose.x), (z, pose)
 
-        ``unrolled=False``: a ``while_loop`` (forward mode only); otherwise a fixed-trip
-        loop that reverse mode differentiates as it ran.
+        def sweep(x, x_new, g, aux):
+            z, pose = aux
+            jac = rig._jacobian(pose)  # (n_b, 3, k)
+            g_z = rig.reduce(pose, g[bone])
+            move = 1.0 - _held(rig, z, g_z)
+            block = jnp.einsum("vik,v,vil->kl", jac, p_bone, jac) * move[:, None] * move[None, :]
+            d_z = jnp.linalg.solve(block + jnp.diag(1.0 - move), g_z * move)
+            return x_new.at[bone].set(rig.positions(rig.retract(z, -d_z))), g_z * move
+
+        return problem.free * (1.0 - rig.is_bone), place, sweep
+
+    def minimize(self, solver, problem, x0, q0, threshold, max_iter, unrolled=False):
+        """Solve one step without contact (see the class docstring); ``unrolled=False``
+        runs a ``while_loop`` (forward mode only), otherwise a fixed-trip loop that reverse
+        mode differentiates as it ran.
+
+        Raises:
+            SkeletonError: ``problem.prepared`` is not this rig's condensation.
         """
-        self._check(problem, x0)
-        return self._solve(problem, x0, q0, threshold, max_iter, unrolled)
+        if not isinstance(problem.prepared, SchurFactor):
+            raise SkeletonError("reduced coordinates need their per-rollout condensation in problem.prepared; build "
+                                "the step problem with softbody.model.prepare and softbody.objective.solve_step")
+        history = solver.history if isinstance(solver, LBFGS) else 0
+        return self._solve(problem, x0, q0, threshold, max_iter, unrolled, history)
 
-    def _solve(self, problem, x0, q0, threshold, max_iter, unrolled):
+    def _solve(self, problem, x0, q0, threshold, max_iter, unrolled, m):
         """The iterations (see the class docstring)."""
         rig, evaluate = self.rig, problem.evaluate
         factor = problem.prepared
         bone = jnp.asarray(rig.bone)
         soft = 1.0 - rig.is_bone
-        n, m = x0.shape[0], self.history
+        n = x0.shape[0]
 
         def reduced(g, pose, z):
             """The reduced gradient ``B^T g_r``, the dofs held at a limit this iteration, and
@@ -967,102 +997,3 @@ class SkeletonPD(IterationMethod):
         init = (x0, z0, q0, phi0, g0, pose0, *reduced(g0, pose0, z0), jnp.asarray(1), jnp.asarray(0), lbfgs)
         x, _, q, _, _, _, _, _, gnorm, evals, k, _ = iterate(cond, body, init, max_iter, unrolled)
         return Solution(x, q, k, evals, gnorm)
-
-
-@dataclass(frozen=True, eq=False)
-class SkeletonContactPD(ContactPD):
-    """Contact and dry friction for a body with a skeleton: the splitting iteration of
-    :class:`~softbody.contact.ContactPD` in the skeleton's reduced coordinates.
-
-    Each iteration evaluates the local step at ``x`` (bones placed by ``FK(z)``, ``z``
-    fitted to the iterate's bone positions by :meth:`Rig.coordinates`), then sweeps
-
-    * the soft vertices as :class:`~softbody.contact.ContactPD` does: ``y = x - P^{-1} g``,
-      followed by the per-vertex contact step (stick or slide, non-penetration);
-    * the skeleton with its block of the same splitting:
-      ``z <- retract(z, -(B^T P_b B)^{-1} B^T g_b)``, ``P_b`` the bone vertices' ``P``,
-      ``B`` the FK Jacobian; a joint at a limit pushed outward is held, as in
-      :class:`SkeletonPD`.
-
-    Convergence carries over from :class:`~softbody.splitting.ScaledDiagonal`'s theorem:
-    with ``T = diag(I, B)`` the reduced matrices are ``T^T L T`` and ``T^T (M/h^2 + D) T``,
-    the latter block diagonal (``D`` is diagonal), and ``L <= 4 diag(L)`` gives
-    ``T^T L T <= 2 T^T D T``, so the frozen-projection iteration matrix again has its
-    eigenvalues in ``[-beta, beta]``, ``beta < 1`` (``B^T M_b B > 0`` as every bone has a
-    volume). The residual is ``|P (x_new - x)|`` over the soft vertices together with the
-    reduced force ``|B^T g_b|`` of the joints free to move: zero exactly at the step's
-    equilibrium with contact. Anderson acceleration mixes the vertex positions; the next
-    map re-fits ``z``, and every returned iterate has rigid bones.
-
-    Contact acts on the soft vertices: bones are meant to lie inside the skin. Steps where
-    nothing is near an obstacle run ``free_method``, :class:`SkeletonPD` on the same rig.
-
-    Gradients: as for :class:`~softbody.contact.ContactPD`, the returned positions carry
-    the implicit derivative of the contact fixed point (active set held fixed), in
-    forward and reverse mode; tested against central differences on a jointed body
-    sliding down an incline (d slide / d mu_k).
-
-    Attributes:
-        rig: the :class:`Rig` (skeleton bound to the scene's mesh).
-        free_method: ``None`` (default) for ``SkeletonPD(rig)``, or a :class:`SkeletonPD`
-            on the same rig.
-        (the other attributes: see :class:`~softbody.contact.ContactPD`.)
-
-    Raises:
-        SkeletonError: no rig, or a ``free_method`` that is not a :class:`SkeletonPD`
-            on ``rig``.
-    """
-
-    free_method: IterationMethod | None = None
-    rig: Rig | None = None
-
-    __eq__ = object.__eq__  # static and hashed by identity, like the rig
-    __hash__ = object.__hash__
-
-    def __post_init__(self):
-        if not isinstance(self.rig, Rig):
-            raise SkeletonError("SkeletonContactPD needs rig=Skeleton(...).bind(mesh), got "
-                                f"{type(self.rig).__name__}")
-        if self.free_method is None:
-            object.__setattr__(self, "free_method", SkeletonPD(self.rig))
-        if not (isinstance(self.free_method, SkeletonPD) and self.free_method.rig is self.rig):
-            raise SkeletonError("SkeletonContactPD.free_method must be a SkeletonPD on the same rig (or None)")
-        super().__post_init__()
-
-    def prepare(self, model, data, factor):
-        """The Schur condensation of :class:`SkeletonPD` (its free steps need it)."""
-        return self.free_method.prepare(model, data, factor)
-
-    def run(self, problem, x0, q0, threshold, max_iter, unrolled=False):
-        """Solve one step with contact; see :meth:`ContactPD.run <softbody.contact.ContactPD.run>`."""
-        _check_size(self.rig, x0.shape[0])
-        return super().run(problem, x0, q0, threshold, max_iter, unrolled)
-
-    def _map(self, problem: StepProblem):
-        """The fixed-point map on vertex positions and the Anderson weights (see the class
-        docstring)."""
-        rig, h, free = self.rig, problem.dt, problem.free
-        bone = jnp.asarray(rig.bone)
-        soft = free * (1.0 - rig.is_bone)
-        p = self._sweep_diagonal(problem)
-        p_bone = p[bone, 0]
-        t_end = problem.time + h
-
-        def fixed_point_map(x, q):
-            z = rig.coordinates(x[bone])
-            pose = rig.pose(z)
-            x = x.at[bone].set(pose.x)
-            _, g, q = problem.evaluate(x, q)
-            y = x - g / p
-            frame = _nearest_obstacle(problem.obstacles, y, t_end)
-            x_new = jnp.where(soft > 0, _contact_step(y, problem.x_n, problem.v_n, h, frame, soft), x)
-            jac = rig._jacobian(pose)  # (n_b, 3, k)
-            g_z = rig.reduce(pose, g[bone])
-            move = 1.0 - _held(rig, z, g_z)
-            block = jnp.einsum("vik,v,vil->kl", jac, p_bone, jac) * move[:, None] * move[None, :]
-            d_z = jnp.linalg.solve(block + jnp.diag(1.0 - move), g_z * move)
-            x_new = x_new.at[bone].set(rig.positions(rig.retract(z, -d_z)))
-            residual = jnp.sqrt(jnp.sum((soft * p * (x_new - x)) ** 2) + jnp.sum((g_z * move) ** 2))
-            return x_new, q, residual
-
-        return fixed_point_map, jnp.broadcast_to(jnp.sqrt(p) * free, problem.x_n.shape).ravel()

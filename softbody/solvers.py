@@ -14,8 +14,17 @@ step is a PD step, and adds curvature from the last ``history`` steps; an Armijo
 backtracking line search keeps it a descent method, and when the search fails it falls
 back to the plain PD step, which always descends.
 
-Each method is a small frozen dataclass (static: changing it recompiles) with
+Each solver is a small frozen dataclass (static: changing it recompiles) with
 ``run(problem, x0, q0, threshold, max_iter, unrolled=False) -> Solution``.
+
+**The composed step.** :func:`softbody.model.build` composes each scene's :class:`Step`
+from three parts: the coordinates (:class:`Vertices` here, or a skeleton's
+:class:`softbody.skeleton.Reduced`), the contact constraint
+(:class:`softbody.contact.Contact` where the scene has obstacles) and the solver chosen in
+``Options(solver=...)``. The coordinates run the solver (vertex coordinates run it as it
+is; reduced coordinates run its L-BFGS in the skeleton's coordinates); the contact
+constraint runs its splitting iteration in the coordinates and hands the steps that touch
+nothing to the solver. Adjoints see only the step (its chart and its solution).
 """
 
 from __future__ import annotations
@@ -25,6 +34,8 @@ from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
+
+from softbody._interfaces import Coordinates
 
 Array = jax.Array
 
@@ -43,7 +54,7 @@ class StepProblem(NamedTuple):
         dt: the time step (0 for static solves).
         time: the time at the start of the step, s.
         obstacles: ``((obstacle, obstacle_params), ...)`` of the scene.
-        prepared: the iteration method's per-rollout data (:meth:`IterationMethod.prepare`).
+        prepared: the coordinates' per-rollout data (:meth:`Step.prepare`).
     """
 
     evaluate: Callable
@@ -70,43 +81,14 @@ class Solution(NamedTuple):
     gnorm: Array  # final |g|
 
 
-class IterationMethod:
-    """Base class of the nonlinear iterations.
+class NonlinearSolver:
+    """Base class of the nonlinear iterations (in vertex coordinates; other coordinates
+    run them their own way, see :meth:`softbody._interfaces.Coordinates.minimize`).
 
     ``volume_weight`` scales the volume term's weight in the prefactored matrix.
     """
 
     volume_weight: float = 1.0
-
-    def prepare(self, model, data: Array, factor) -> object:
-        """Per-rollout data of the method, made once per rollout by :func:`softbody.model.prepare`
-        (differentiable) and handed to :meth:`run` as ``problem.prepared``.
-
-        Arguments:
-            model: the compiled scene.
-            data: ``(nnz,)`` the PD matrix values; factor: their factorisation.
-
-        Returns:
-            A pytree, or ``None`` (the default: nothing to prepare).
-        """
-        return None
-
-    def implicit_chart(self, prepared, x: Array, free: Array):
-        """Coordinates in which the step's solution ``x`` is a stationary point of ``Phi``,
-        for :class:`softbody.gradients.Implicit`.
-
-        Arguments:
-            prepared: this method's per-rollout data (:meth:`prepare`).
-            x: ``(n, 3)`` the step's solution; free: ``(n, 1)`` the free-vertex mask.
-
-        Returns:
-            ``None`` (the default): the free vertices' positions themselves. Otherwise
-            ``(embed, solve, size)``: ``embed(d)`` maps ``(size,)`` chart coordinates to
-            positions ``(n, 3)``, with ``embed(0) = x``; ``solve(r)`` applies a symmetric
-            positive definite approximation of the inverse Hessian in the chart (the
-            adjoint's preconditioner).
-        """
-        return None
 
     def run(self, problem: StepProblem, x0: Array, q0: Array, threshold: Array, max_iter: int,
             unrolled: bool | Unroll = False) -> Solution:
@@ -167,7 +149,7 @@ def iterate(cond, body, init, max_iter: int, unrolled: bool | Unroll):
 
 
 @dataclass(frozen=True)
-class LocalGlobal(IterationMethod):
+class LocalGlobal(NonlinearSolver):
     """Plain projective dynamics: alternate local projections and the global solve.
 
     Its monotone decrease of the objective needs the PD matrix with the true weights, so
@@ -262,7 +244,7 @@ def store_pair(history: tuple, s: Array, y: Array) -> tuple:
 
 
 @dataclass(frozen=True)
-class LBFGS(IterationMethod):
+class LBFGS(NonlinearSolver):
     """L-BFGS with the PD matrix as initial Hessian and an Armijo safeguard.
 
     Each iteration tries the full quasi-Newton step; if it does not decrease the
@@ -308,3 +290,91 @@ class LBFGS(IterationMethod):
         init = (x0, phi0, g0, q0, empty_history(self.history, x0.size, x0.dtype), jnp.asarray(0), jnp.asarray(1))
         x, _, g, q, _, k, evals = iterate(cond, body, init, max_iter, unrolled)
         return Solution(x, q, k, evals, _norm(g))
+
+
+@dataclass(frozen=True)
+class Vertices(Coordinates):
+    """Plain coordinates: every free vertex moves on its own; the solver runs as it is."""
+
+    solvers = (LBFGS, LocalGlobal)
+
+    def volume_weight(self, solver: NonlinearSolver) -> float:
+        return solver.volume_weight
+
+    def prepare(self, model, data, factor):
+        return None
+
+    def implicit_chart(self, prepared, x, free):
+        return None
+
+    def minimize(self, solver, problem, x0, q0, threshold, max_iter, unrolled=False):
+        return solver.run(problem, x0, q0, threshold, max_iter, unrolled)
+
+    def contact_sweep(self, problem, p):
+        def place(x):
+            return x, None
+
+        def sweep(x, x_new, g, aux):
+            return x_new, jnp.zeros(0, x.dtype)
+
+        return problem.free, place, sweep
+
+
+@dataclass(frozen=True)
+class Step:
+    """One implicit step, composed by :func:`softbody.model.build` from the scene.
+
+    Attributes:
+        coordinates: the unknowns (:class:`Vertices`, or a skeleton's
+            :class:`softbody.skeleton.Reduced`).
+        solver: the contact-free nonlinear iteration (:class:`LBFGS`, :class:`LocalGlobal`).
+        contact: ``None`` for a scene without obstacles, else the contact constraint's
+            solver (:class:`softbody.contact.Contact`), which runs the splitting iteration
+            in ``coordinates`` and ``solver`` on the steps that touch nothing.
+
+    ``build`` checks the combination (``coordinates.solvers`` lists the solvers the
+    coordinates run) before anything compiles.
+    """
+
+    coordinates: Coordinates
+    solver: NonlinearSolver
+    contact: object = None
+
+    @property
+    def volume_weight(self) -> float:
+        """The volume term's scale in the prefactored matrix: 1 with contact (its splitting
+        needs the true diagonal), else as the coordinates choose for the solver."""
+        return 1.0 if self.contact is not None else self.coordinates.volume_weight(self.solver)
+
+    def prepare(self, model, data: Array, factor) -> object:
+        """Per-rollout data of the coordinates (made once per rollout by
+        :func:`softbody.model.prepare`, differentiable), handed to :meth:`run` as
+        ``problem.prepared``."""
+        return self.coordinates.prepare(model, data, factor)
+
+    def implicit_chart(self, prepared, x: Array, free: Array):
+        """Coordinates in which the step's solution ``x`` is a stationary point of ``Phi``,
+        for :class:`softbody.gradients.Implicit`.
+
+        Arguments:
+            prepared: the per-rollout data (:meth:`prepare`).
+            x: ``(n, 3)`` the step's solution; free: ``(n, 1)`` the free-vertex mask.
+
+        Returns:
+            ``None``: the free vertices' positions themselves. Otherwise
+            ``(embed, solve, size)``: ``embed(d)`` maps ``(size,)`` chart coordinates to
+            positions ``(n, 3)``, with ``embed(0) = x``; ``solve(r)`` applies a symmetric
+            positive definite approximation of the inverse Hessian in the chart (the
+            adjoint's preconditioner).
+        """
+        return self.coordinates.implicit_chart(prepared, x, free)
+
+    def run(self, problem: StepProblem, x0: Array, q0: Array, threshold: Array, max_iter: int,
+            unrolled: bool | Unroll = False) -> Solution:
+        """Solve the step from ``(x0, q0)`` until its residual is ``<= threshold`` or
+        ``max_iter`` iterations (``unrolled``: see :meth:`NonlinearSolver.run`; a step with
+        contact is never unrolled, ``build`` refuses :class:`~softbody.gradients.Unrolled`
+        there)."""
+        if self.contact is not None:
+            return self.contact.run(problem, self.coordinates, self.solver, x0, q0, threshold, max_iter)
+        return self.coordinates.minimize(self.solver, problem, x0, q0, threshold, max_iter, unrolled)

@@ -1,6 +1,6 @@
 """Diagonal splittings of the PD matrix for the contact solver's iteration, and their theory.
 
-The contact solver (:class:`softbody.contact.ContactPD`) splits the PD matrix
+The contact solver (:class:`softbody.contact.Contact`) splits the PD matrix
 ``A = M/h^2 + L`` as ``P - (D - L)`` with ``P = M/h^2 + D`` diagonal and iterates
 ``x <- P^{-1} (b + (D - L) x)``, so that each iteration inverts a diagonal only. A
 :class:`Splitting` chooses ``D``: :class:`Naive` ``0``, :class:`Diagonal` ``diag(L)``
@@ -99,7 +99,7 @@ class ScaledDiagonal(Splitting):
     slows); for ``scale < 2`` the bound fails for some meshes. For statics (no mass) the
     bound is ``rho < 1`` iff ``L`` is definite, i.e. enough vertices are fixed.
 
-    **The iteration that re-projects.** :class:`~softbody.contact.ContactPD` runs the local
+    **The iteration that re-projects.** :class:`~softbody.contact.Contact` runs the local
     step in every iteration, so near a solution its map (contact state fixed) linearises to
     ``I - P^{-1} H`` on the unconstrained directions, ``H`` the step objective's true
     Hessian. PD's quadratic model with the projections of ``x`` majorises the energy and
@@ -167,8 +167,8 @@ def splitting_spectral_radius(model, prep, splitting: Splitting) -> float:
     """Spectral radius of the splitting iteration matrix with the projections held fixed.
 
     ``rho((M/h^2 + D)^{-1} (D - L))`` over the free vertices, for the scene's PD matrix
-    (with the volume weight of the scene's iteration method: 1 for
-    :class:`~softbody.contact.ContactPD`). Computed on the host with scipy (``eigsh`` on
+    (with the volume weight of the scene's step: 1 with
+    :class:`~softbody.contact.Contact`). Computed on the host with scipy (``eigsh`` on
     the symmetric similar matrix ``P^{-1/2} (D - L) P^{-1/2}``; dense ``eigvalsh`` below
     500 vertices).
 

@@ -16,8 +16,7 @@ import numpy as np
 import pytest
 
 from softbody import contact, io
-from softbody.contact import ContactPD
-from softbody.gradients import Unrolled
+from softbody.contact import Contact
 from softbody.material import Material
 from softbody.meshing import examples
 from softbody.meshing.grid import grid_box
@@ -34,7 +33,7 @@ from softbody.obstacles import (
     from_dict,
 )
 from softbody.simulate import rollout, step
-from softbody.solvers import LocalGlobal, StepProblem
+from softbody.solvers import LBFGS, LocalGlobal, StepProblem, Vertices
 from softbody.splitting import Diagonal, Naive, ScaledDiagonal, _pd_split, splitting_spectral_radius
 
 from incline import G, acceleration, ramped_gravity, rot_y
@@ -42,9 +41,9 @@ from incline import G, acceleration, ramped_gravity, rot_y
 EDGE = 0.1  # cube edge, m (density 1000: mass 1 kg)
 MU_S, MU_K = 0.5, 0.4
 DT = 0.01
-#: scenes that touch from the first step never take the contact-free path: a cheap one
-#: (plain PD) compiles faster than the default L-BFGS
-TOUCHING = ContactPD(free_method=LocalGlobal())
+#: scenes that touch from the first step never take the contact-free path: a cheap solver
+#: for it (plain PD) compiles faster than the default L-BFGS
+TOUCHING = LocalGlobal()
 
 
 # ----------------------------------------------------------------------------- geometry
@@ -244,11 +243,11 @@ def test_obstacle_parameters_are_typed_pytrees():
     assert float(scene.obstacles[0].mu_k) == 0.2 and isinstance(scene.obstacles[0], PlaneParams)
 
 
-def test_contact_pd_rejects_bad_settings_and_mismatched_parameters():
+def test_contact_rejects_bad_settings_and_mismatched_parameters():
     with pytest.raises(ValueError, match="Splitting"):
-        ContactPD(splitting="diag")
+        Contact(splitting="diag")
     with pytest.raises(ValueError, match="history"):
-        ContactPD(history=-1)
+        Contact(history=-1)
     with pytest.raises(ValueError, match="scale"):
         ScaledDiagonal(0.0)
     x = jnp.zeros((4, 3))
@@ -266,12 +265,12 @@ def test_contact_pd_rejects_bad_settings_and_mismatched_parameters():
         obstacles=((Plane(), {"point": jnp.zeros(3)}),),
     )
     with pytest.raises(ObstacleError, match="must be the PlaneParams made by init_params"):
-        ContactPD().run(problem, x, None, 1e-6, 10)
+        Contact().run(problem, Vertices(), LBFGS(), x, None, 1e-6, 10)
     wrong = ((Plane(), Sphere().init_params()),)
     with pytest.raises(ObstacleError, match="got a SphereParams"):
-        ContactPD().run(problem._replace(obstacles=wrong), x, None, 1e-6, 10)
+        Contact().run(problem._replace(obstacles=wrong), Vertices(), LBFGS(), x, None, 1e-6, 10)
     with pytest.raises(ObstacleError, match="obstacle 0 is a str"):
-        ContactPD().run(problem._replace(obstacles=(("floor", {}),)), x, None, 1e-6, 10)
+        Contact().run(problem._replace(obstacles=(("floor", {}),)), Vertices(), LBFGS(), x, None, 1e-6, 10)
 
 
 # ----------------------------------------------------------------------------- friction physics
@@ -290,7 +289,7 @@ def cube_scene():
     model, params = build(
         mesh,
         Material(E=1e5, nu=0.3, beta=0.01),
-        options=Options(dt=DT, gravity=(0.0, 0.0, 0.0), tol=1e-8, max_iter=3000, method=TOUCHING),
+        options=Options(dt=DT, gravity=(0.0, 0.0, 0.0), tol=1e-8, max_iter=3000, solver=TOUCHING),
         obstacles=[Plane(mu_s=MU_S, mu_k=MU_K)],
     )
     mass = np.asarray(prepare(model, params).mass)
@@ -416,7 +415,7 @@ def test_moving_plate_carries_a_sticking_cube(cube_scene):
     model, params = build(
         mesh,
         Material(E=1e5, nu=0.3),
-        options=Options(dt=DT, tol=1e-8, max_iter=3000, method=TOUCHING),
+        options=Options(dt=DT, tol=1e-8, max_iter=3000, solver=TOUCHING),
         obstacles=[plate],
     )
     traj = rollout(model, params, initial_state(model, params), n_steps=60)
@@ -461,8 +460,7 @@ def test_full_iteration_diverges_with_naive_and_converges_with_default():
     mesh = grid_box((EDGE,) * 3, (2, 2, 2))
     residuals = {}
     for splitting in (Naive(), ScaledDiagonal()):
-        method = ContactPD(splitting=splitting, history=0, free_method=LocalGlobal())
-        opts = Options(dt=DT, max_iter=400, method=method)
+        opts = Options(dt=DT, max_iter=400, solver=LocalGlobal(), contact=Contact(splitting=splitting, history=0))
         model, params = build(mesh, Material(E=1e4, nu=0.3), options=opts, obstacles=[Plane()])
         prep = prepare(model, params)
         _, info = jax.jit(lambda prep, s: step(model, prep, s))(prep, initial_state(model, params))
@@ -481,10 +479,9 @@ def test_full_iteration_diverges_with_naive_and_converges_with_default():
 
 @pytest.mark.slow
 def test_gradient_through_sliding_contact_matches_finite_differences():
-    """d(slide distance)/d(mu_k) and d/d(incline angle): ContactPD's implicit derivative."""
+    """d(slide distance)/d(mu_k) and d/d(incline angle): the contact step's implicit derivative."""
     mesh = grid_box((EDGE,) * 3, (2, 2, 2), origin=(-EDGE / 2, -EDGE / 2, 0.0))
-    # Unrolled differentiates through the iteration method, so ContactPD's own derivative applies
-    opts = Options(dt=DT, tol=1e-11, max_iter=1500, method=TOUCHING, adjoint=Unrolled())
+    opts = Options(dt=DT, tol=1e-11, max_iter=1500, solver=TOUCHING)
     model, params = build(
         mesh, Material(E=1e5, nu=0.3), options=opts, obstacles=[Plane(mu_s=MU_S, mu_k=MU_K)]
     )

@@ -174,7 +174,7 @@ def test_no_contact_or_skeleton_work_without_obstacles_or_bones():
     from softbody.material import Material
     from softbody.model import Options, build
     from softbody.obstacles import Plane
-    from softbody.skeleton import Fixed, Link, Skeleton, SkeletonPD
+    from softbody.skeleton import Fixed, Link, Skeleton
     from softbody.solvers import LBFGS
 
     from softbody.meshing import Region
@@ -182,15 +182,14 @@ def test_no_contact_or_skeleton_work_without_obstacles_or_bones():
     mesh = SCENE.mesh(2)
     material = Material(E=1e6, nu=0.3)
     plain, p_plain = build(mesh, material, fixed="fixed")
-    assert type(plain.method) is LBFGS
-    explicit_lbfgs, p_lbfgs = build(mesh, material, fixed="fixed", options=Options(method=LBFGS()))
+    assert type(plain.step.solver) is LBFGS and plain.step.contact is None and plain.rig is None
+    explicit_lbfgs, p_lbfgs = build(mesh, material, fixed="fixed", options=Options(solver=LBFGS()))
     contact, p_contact = build(mesh, material, fixed="fixed", obstacles=[Plane(point=(0.0, 0.0, -10.0))])
-    assert type(contact.method).__name__ == "ContactPD"
+    assert type(contact.step.contact).__name__ == "Contact"
     inside = mesh.points[:, 0] >= 0.08 - 1e-9
     bones = mesh.with_regions(**{"bone:b": Region(np.flatnonzero(inside),
                                                   np.flatnonzero(inside[mesh.tets].all(axis=1)))})
-    rig = Skeleton([Link("b", "bone:b", None, Fixed())]).bind(bones)
-    skeleton, p_skeleton = build(bones, material, fixed="fixed", options=Options(method=SkeletonPD(rig)))
+    skeleton, p_skeleton = build(bones, material, fixed="fixed", skeleton=Skeleton([Link("b", "bone:b", None, Fixed())]))
     sizes = {name: _step_size(m, p) for name, (m, p) in {
         "default": (plain, p_plain), "L-BFGS": (explicit_lbfgs, p_lbfgs), "contact": (contact, p_contact),
         "skeleton": (skeleton, p_skeleton)}.items()}

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from softbody.contact import ContactPD
+from softbody.contact import Contact
 from softbody.gradients import Implicit, Unrolled
 from softbody.linsolve import DenseCholesky
 from softbody.material import Material
@@ -15,7 +15,8 @@ from softbody.meshing.grid import grid_box
 from softbody.model import Options, SceneError, build, initial_state
 from softbody.obstacles import Plane
 from softbody.simulate import _rollout, rollout
-from softbody.solvers import LBFGS, LocalGlobal
+from softbody.solvers import LBFGS, LocalGlobal, Step, Vertices
+from softbody.splitting import Diagonal
 
 MESH = grid_box((0.04, 0.01, 0.01), (4, 1, 1))
 
@@ -26,14 +27,32 @@ def _build(**kwargs):
 
 def test_build_resolves_defaults_once():
     model, _ = _build()
-    assert isinstance(model.options.method, LBFGS) and model.method is model.options.method
-    assert isinstance(model.options.adjoint, Implicit)
+    assert model.step == Step(Vertices(), LBFGS(), None) and model.options.solver is model.step.solver
+    assert isinstance(model.options.adjoint, Implicit) and model.options.contact is None and model.rig is None
     assert model.options.linear_solver is not None and model.linear_solver is model.options.linear_solver
     contact, _ = build(MESH, Material(), obstacles=[Plane()])
-    assert isinstance(contact.method, ContactPD)
-    chosen = Options(method=LocalGlobal(), adjoint=Unrolled(), linear_solver=DenseCholesky())
+    assert contact.step == Step(Vertices(), LBFGS(), Contact()) and contact.options.contact is contact.step.contact
+    chosen = Options(solver=LocalGlobal(), adjoint=Unrolled(), linear_solver=DenseCholesky())
     model, _ = _build(options=chosen)
     assert model.options == chosen  # what the user chose is kept as given
+    assert model.step == Step(Vertices(), LocalGlobal(), None)
+    mine = Contact(splitting=Diagonal(), history=5)
+    model, _ = build(MESH, Material(), obstacles=[Plane()], options=Options(contact=mine))
+    assert model.step.contact is mine and model.options.contact is mine
+
+
+def test_unsupported_combinations_are_refused_before_compiling(no_compiling):
+    """Each refusal names what is supported (build composes the step before compiling)."""
+    with pytest.raises(SceneError, match="Options.contact sets the contact solver, but the scene has no obstacles"):
+        _build(options=Options(contact=Contact()))
+    with pytest.raises(SceneError, match="a step with contact is differentiated through the fixed point"):
+        build(MESH, Material(), obstacles=[Plane()], options=Options(adjoint=Unrolled()))
+    with pytest.raises(SceneError, match="Options.solver must be a nonlinear solver"):
+        _build(options=Options(solver=Contact()))
+    with pytest.raises(SceneError, match="Options.contact must be a softbody.contact.Contact"):
+        build(MESH, Material(), obstacles=[Plane()], options=Options(contact=LBFGS()))
+    with pytest.raises(SceneError, match="Options.adjoint must be"):
+        _build(options=Options(adjoint="implicit"))
 
 
 def test_models_compare_by_content_and_share_compiled_code():

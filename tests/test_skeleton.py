@@ -19,8 +19,9 @@ from softbody.meshing.grid import grid_box
 from softbody.model import Options, SceneError, build, initial_state, prepare
 from softbody.obstacles import Plane
 from softbody.simulate import rollout
-from softbody.skeleton import (Fixed, Free, Link, Prismatic, Revolute, Skeleton, SkeletonContactPD, SkeletonError,
-                               SkeletonPD, schur_direction, schur_factor)
+from softbody.solvers import NonlinearSolver
+from softbody.skeleton import (Fixed, Free, Link, Prismatic, Reduced, Revolute, Skeleton, SkeletonError,
+                               schur_direction, schur_factor)
 
 from incline import G, acceleration, ramped_gravity, rot_y
 
@@ -101,7 +102,7 @@ def test_free_root_rotates_about_its_centre_of_mass(chain):
 def test_schur_solve_equals_direct_reduced_solve(bar, chain):
     """The Schur-complement direction against a dense solve of the full reduced system
     ``[[Q_ff, Q_fr B], [B^T Q_rf, B^T Q_rr B]]`` (with one joint held at a limit)."""
-    model, params = build(bar, SKIN, options=Options(dt=0.01, method=SkeletonPD(chain)))
+    model, params = build(bar, SKIN, skeleton=chain.skeleton, options=Options(dt=0.01))
     prep = prepare(model, params)
     a = np.asarray(model.pattern.to_dense(prep.data))
     n, bone = bar.n_vertices, chain.bone
@@ -151,7 +152,7 @@ def test_rigid_pendulum_period_and_rigidity():
     pivot = np.array([0.01, 0.01, 0.12])
     rig = Skeleton([Link("bob", "bone:bob", None, Revolute((0.0, 1.0, 0.0), tuple(pivot)))]).bind(mesh)
     dt, g = 1e-3, 9.81
-    model, params = build(mesh, SKIN, options=Options(dt=dt, tol=1e-8, method=SkeletonPD(rig)))
+    model, params = build(mesh, SKIN, skeleton=rig.skeleton, options=Options(dt=dt, tol=1e-8))
     mass = np.asarray(prepare(model, params).mass)[:, 0]
     arm = mesh.points - pivot
     inertia = float(np.sum(mass * (arm[:, 0] ** 2 + arm[:, 2] ** 2)))
@@ -189,7 +190,7 @@ def test_two_link_arm_in_soft_skin_keeps_bone_lengths_and_joint_limits(arm):
     mesh, _ = arm
     rig = Skeleton([Link("upper", "bone:upper", None, Revolute((0.0, 1.0, 0.0), (0.02, 0.02, 0.02), (-0.3, 0.01))),
                     Link("fore", "bone:fore", "upper", Revolute((0.0, 1.0, 0.0), (0.10, 0.02, 0.02)))]).bind(mesh)
-    model, params = build(mesh, SKIN, fixed="xmin", options=Options(dt=0.01, method=SkeletonPD(rig)))
+    model, params = build(mesh, SKIN, fixed="xmin", skeleton=rig.skeleton, options=Options(dt=0.01))
     traj = rollout(model, params, initial_state(model, params), n_steps=25)
     assert bool(jnp.all(traj.info.converged))
     xs = np.asarray(traj.x)
@@ -218,9 +219,10 @@ def test_joint_torque_and_saturated_servo_spin_a_hinged_body():
     centre = np.array([0.02, 0.01, 0.01])
     rig = Skeleton([Link("body", "bone:body", None, Revolute((0.0, 0.0, 1.0), tuple(centre)))]).bind(mesh)
     tau, tau_s, dt, n_steps = 1e-4, 2e-4, 1e-3, 100
-    servo = JointServo(rig, ["body"], stiffness=1.0, torque_limit=tau_s)
-    model, params = build(mesh, SKIN, actuators=[JointTorque(rig, ["body"]), servo],
-                          options=Options(dt=dt, gravity=(0.0, 0.0, 0.0), tol=1e-10, method=SkeletonPD(rig)))
+    model, params = build(mesh, SKIN, skeleton=rig.skeleton,
+                          actuators=[JointTorque(["body"]), JointServo(["body"], stiffness=1.0, torque_limit=tau_s)],
+                          options=Options(dt=dt, gravity=(0.0, 0.0, 0.0), tol=1e-10))
+    servo = model.terms[1]
     mass = np.asarray(prepare(model, params).mass)[:, 0]
     arm = mesh.points - centre
     inertia = float(np.sum(mass * (arm[:, 0] ** 2 + arm[:, 1] ** 2)))
@@ -237,9 +239,10 @@ def test_servo_holds_a_joint_at_its_target_against_gravity(arm):
     gravity pull back, so the servo settles where its torque balances them, slightly
     below the target (stiff gain: within 0.02 rad)."""
     mesh, rig = arm
-    servo = JointServo(rig, ["upper", "fore"], stiffness=50.0, torque_limit=5.0)
     model, params = build(mesh, Material(E=1e4, nu=0.3, density=1000.0, alpha=20.0), fixed="xmin",
-                          options=Options(dt=0.01, method=SkeletonPD(rig)), actuators=[servo])
+                          skeleton=rig.skeleton, options=Options(dt=0.01),
+                          actuators=[JointServo(["upper", "fore"], stiffness=50.0, torque_limit=5.0)])
+    servo = model.terms[0]
     target = jnp.array([-0.1, 0.0])
     traj = rollout(model, params, initial_state(model, params), controls=jnp.tile(target, (60, 1)))
     z = np.asarray(rig.coordinates(traj.x[-1][jnp.asarray(rig.bone)]))
@@ -279,29 +282,32 @@ def test_bad_joints_and_bones_are_rejected(bar):
         Skeleton([Link("a", "bone:a"), Link("b", "bone:a", "a")]).bind(bar)
 
 
-def test_fixed_bone_vertices_and_wrong_meshes_are_rejected(bar, arm):
-    rig = Skeleton([Link("a", "bone:a", None, Free())]).bind(bar)
-    model, params = build(bar, SKIN, fixed=rig.bone[:1], options=Options(method=SkeletonPD(rig)))
+def test_bad_skeleton_scenes_are_refused_before_compiling(bar, arm, no_compiling):
+    """A fixed bone vertex, joint actuators without a skeleton or on joints that take no
+    torque, a solver the reduced coordinates do not run: each refused by build."""
+    skeleton = Skeleton([Link("a", "bone:a", None, Free())])
+    rig = skeleton.bind(bar)
     with pytest.raises(SkeletonError, match="bone vertices are fixed"):
-        rollout(model, params, initial_state(model, params), n_steps=1)
-    model, params = build(arm[0], SKIN, options=Options(method=SkeletonPD(rig)))
-    with pytest.raises(SkeletonError, match="bound to a mesh of 400 vertices"):
-        rollout(model, params, initial_state(model, params), n_steps=1)
-    model, params = build(bar, SKIN, options=Options(method=SkeletonPD(rig)), obstacles=[Plane(mu_s=0.5)])
-    with pytest.raises(SkeletonError, match="does not handle contact"):
-        rollout(model, params, initial_state(model, params), n_steps=1)
-    with pytest.raises(SkeletonError, match="needs rig="):
-        SkeletonContactPD()
-    with pytest.raises(SkeletonError, match="SkeletonPD on the same rig"):
-        SkeletonContactPD(rig=rig, free_method=SkeletonPD(arm[1]))
-    model, params = build(arm[0], SKIN, options=Options(method=SkeletonContactPD(rig=rig)), obstacles=[Plane()])
-    with pytest.raises(SkeletonError, match="bound to a mesh of 400 vertices"):
-        rollout(model, params, initial_state(model, params), n_steps=1)
-    model, params = build(bar, SKIN, actuators=[JointTorque(arm[1], ["upper"])])
-    with pytest.raises(SceneError, match="bound to a mesh of"):
-        prepare(model, params)
+        build(bar, SKIN, fixed=rig.bone[:1], skeleton=skeleton)
+    with pytest.raises(SceneError, match="skeleton must be a softbody.skeleton.Skeleton"):
+        build(bar, SKIN, skeleton=rig)
+    with pytest.raises(SceneError, match="the scene has none"):
+        build(bar, SKIN, actuators=[JointTorque(["upper"])])
     with pytest.raises(SceneError, match="only Revolute and Prismatic"):
-        JointTorque(rig, ["a"])
+        build(bar, SKIN, skeleton=skeleton, actuators=[JointTorque(["a"])])
+    with pytest.raises(SkeletonError, match="no link 'nope' in the skeleton"):
+        build(arm[0], SKIN, skeleton=arm[1].skeleton, actuators=[JointServo(["nope"])])
+    with pytest.raises(SceneError, match="write \\['upper'\\]"):
+        JointTorque("upper")
+
+    class Newton(NonlinearSolver):
+        pass
+
+    with pytest.raises(SceneError, match="a scene with a skeleton runs the solvers \\['LBFGS', 'LocalGlobal'\\]"):
+        build(bar, SKIN, skeleton=skeleton, options=Options(solver=Newton()))
+    model, _ = build(bar, SKIN, skeleton=skeleton, obstacles=[Plane(mu_s=0.5)])
+    assert isinstance(model.step.coordinates, Reduced) and model.step.contact is not None
+    assert model.rig.skeleton is skeleton
 
 
 @pytest.mark.slow  # ~4 min of CPU: reverse mode through 4 x 321 unrolled iterations
@@ -312,10 +318,10 @@ def test_joint_torque_gradient_matches_finite_differences_over_a_rollout(arm):
     that kept halving after acceptance once made it a different (non-converging) function
     whose gradient matched its own differences but not the simulation's."""
     mesh, rig = arm
-    options = dict(dt=0.01, tol=1e-10, max_iter=300, method=SkeletonPD(rig))
-    model, params = build(mesh, SKIN, fixed="xmin", actuators=[JointTorque(rig, ["upper", "fore"])],
+    options = dict(dt=0.01, tol=1e-10, max_iter=300)
+    model, params = build(mesh, SKIN, fixed="xmin", skeleton=rig.skeleton, actuators=[JointTorque(["upper", "fore"])],
                           options=Options(**options, adjoint=Unrolled()))
-    plain, _ = build(mesh, SKIN, fixed="xmin", actuators=[JointTorque(rig, ["upper", "fore"])],
+    plain, _ = build(mesh, SKIN, fixed="xmin", skeleton=rig.skeleton, actuators=[JointTorque(["upper", "fore"])],
                      options=Options(**options))
     state0 = initial_state(model, params)
     controls = jnp.tile(jnp.array([2e-3, -1e-3]), (4, 1))
@@ -346,9 +352,9 @@ def test_implicit_gradient_of_torques_servos_and_material_matches_finite_differe
     solver's stopping noise (1e-4 relative at a step of 1e-4; the gradient itself agreed
     to 4e-7 at 1e-12)."""
     mesh, rig = arm
-    servo = JointServo(rig, ["fore"], stiffness=0.05)
-    model, params = build(mesh, SKIN, fixed="xmin", actuators=[JointTorque(rig, ["upper"]), servo],
-                          options=Options(dt=0.01, tol=1e-12, max_iter=300, method=SkeletonPD(rig)))
+    model, params = build(mesh, SKIN, fixed="xmin", skeleton=rig.skeleton,
+                          actuators=[JointTorque(["upper"]), JointServo(["fore"], stiffness=0.05)],
+                          options=Options(dt=0.01, tol=1e-12, max_iter=300))
     state0 = initial_state(model, params)
     tip = jnp.asarray(np.flatnonzero(mesh.points[:, 0] > 0.2 - 1e-9))
     theta = {"torque": jnp.full((3, 1), 2e-3), "target": jnp.full((3, 1), -0.05),
@@ -378,7 +384,7 @@ def test_two_link_arm_joint_angles_converge_at_first_order_in_dt(arm):
     mesh, rig = arm
     angles = []
     for dt in (0.01, 0.005, 0.0025):
-        model, params = build(mesh, SKIN, fixed="xmin", options=Options(dt=dt, tol=1e-9, method=SkeletonPD(rig)))
+        model, params = build(mesh, SKIN, fixed="xmin", skeleton=rig.skeleton, options=Options(dt=dt, tol=1e-9))
         traj = rollout(model, params, initial_state(model, params), n_steps=round(0.08 / dt))
         assert bool(jnp.all(traj.info.converged))
         xs = np.asarray(traj.x)
@@ -405,9 +411,8 @@ def test_jointed_body_sticks_on_an_incline_below_the_friction_angle_and_slides_a
     rig = Skeleton([Link("upper", "bone:upper", None, Free()),
                     Link("fore", "bone:fore", "upper", Revolute((0.0, 1.0, 0.0), (0.10, 0.02, 0.02)))]).bind(mesh)
     dt, mu_s, mu_k = 0.01, 0.5, 0.4
-    model, params = build(mesh, Material(E=1e5, nu=0.3, density=1000.0, beta=0.01),
-                          options=Options(dt=dt, gravity=(0.0, 0.0, 0.0), tol=1e-8, max_iter=3000,
-                                          method=SkeletonContactPD(rig=rig)),
+    model, params = build(mesh, Material(E=1e5, nu=0.3, density=1000.0, beta=0.01), skeleton=rig.skeleton,
+                          options=Options(dt=dt, gravity=(0.0, 0.0, 0.0), tol=1e-8, max_iter=3000),
                           obstacles=[Plane(mu_s=mu_s, mu_k=mu_k)])
     mass = np.asarray(prepare(model, params).mass)
 
@@ -438,16 +443,15 @@ def test_jointed_body_sticks_on_an_incline_below_the_friction_angle_and_slides_a
 
 @pytest.mark.slow
 def test_gradient_through_skeleton_contact_matches_central_differences(arm):
-    """Reverse mode through SkeletonContactPD: the slide of a jointed body down an incline
+    """Reverse mode through contact in a skeleton's reduced coordinates: the slide of a jointed body down an incline
     (tan theta = 1.1 mu_s) differentiated with respect to the kinetic friction coefficient,
     against central differences (eps 1e-4: truncation ~eps^2 relative; forward tol 1e-10)."""
     mesh, _ = arm
     rig = Skeleton([Link("upper", "bone:upper", None, Free()),
                     Link("fore", "bone:fore", "upper", Revolute((0.0, 1.0, 0.0), (0.10, 0.02, 0.02)))]).bind(mesh)
     dt, mu_s = 0.01, 0.5
-    model, params = build(mesh, Material(E=1e5, nu=0.3, density=1000.0),
-                          options=Options(dt=dt, gravity=(0.0, 0.0, 0.0), tol=1e-10, max_iter=3000,
-                                          method=SkeletonContactPD(rig=rig)),
+    model, params = build(mesh, Material(E=1e5, nu=0.3, density=1000.0), skeleton=rig.skeleton,
+                          options=Options(dt=dt, gravity=(0.0, 0.0, 0.0), tol=1e-10, max_iter=3000),
                           obstacles=[Plane(mu_s=mu_s, mu_k=0.4)])
     r = rot_y(np.arctan(1.1 * mu_s))
     x0 = mesh.points @ r.T

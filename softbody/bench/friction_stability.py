@@ -19,7 +19,7 @@ and the default :class:`~softbody.splitting.ScaledDiagonal`), it measures
   hundreds of iterations below round-off), classified ``converged`` (force residual below
   ``1e-6 |M s / h^2|``), ``diverged`` (non-finite, or the residual at the end above 10x
   its start) or ``slow`` (neither), with its empirical contraction factor per iteration;
-  and the accelerated iteration as :class:`~softbody.contact.ContactPD` runs it
+  and the accelerated iteration as :class:`~softbody.contact.Contact` runs it
   (Anderson mixing, its default history) from the unperturbed guess: iterations to the
   same tolerance, or not converged within the cap.
 
@@ -41,7 +41,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from softbody.contact import ContactPD
+from softbody.contact import Contact
 from softbody.material import Material
 from softbody.meshing import TetMesh, examples
 from softbody.meshing.grid import grid_box
@@ -85,7 +85,7 @@ def _on_ground(mesh: TetMesh) -> TetMesh:
 def _iterations(model, n_plain: int):
     """A jitted ``(params, perturbation (n, 3)) -> (plain residuals (n_plain,), |M s / h^2|,
     accelerated StepInfo)``; the plain iteration starts from ``x_n + h v_n + perturbation``."""
-    method = model.options.method
+    contact = model.step.contact
 
     def run(params, perturbation):
         prep = prepare(model, params)
@@ -108,8 +108,8 @@ def _iterations(model, n_plain: int):
             time=state.t,
             obstacles=tuple(zip(model.obstacles, prep.obstacles)),
         )
-        plain = ContactPD(splitting=method.splitting, history=0)
-        fixed_point_map, _ = plain._map(problem)
+        plain = Contact(splitting=contact.splitting, history=0)
+        fixed_point_map, _ = plain.map(problem, model.step.coordinates)
         x0 = state.x + model.options.dt * state.v + perturbation * free
 
         def body(c, _):
@@ -175,8 +175,8 @@ def run(out: Path, quick: bool) -> dict:
         )
         for dt in steps:
             for split_name, splitting in SPLITTINGS.items():
-                method = ContactPD(splitting=splitting, free_method=LocalGlobal())
-                options = Options(dt=dt, tol=TOL, max_iter=2000, method=method)
+                options = Options(dt=dt, tol=TOL, max_iter=2000, solver=LocalGlobal(),
+                                  contact=Contact(splitting=splitting))
                 model, params = build(
                     mesh,
                     Material(E=youngs[0], nu=0.45),

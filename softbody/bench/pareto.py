@@ -72,13 +72,13 @@ class Cantilever:
         """The ``grid_box`` mesh with ``(5k, k, k)`` cells (regions ``fixed`` and ``tip``)."""
         return _mesh(self.length, self.width, k)
 
-    def build(self, k: int, dt: float = 0.01, tol: float = 1e-6, method=None, max_iter: int = 2000,
+    def build(self, k: int, dt: float = 0.01, tol: float = 1e-6, solver=None, max_iter: int = 2000,
               linear_solver=None):
         """``(model, params)`` of the scene on mesh ``k`` with the given step options."""
         from softbody.material import Material
         from softbody.model import Options, build
 
-        options = Options(dt=dt, tol=tol, max_iter=max_iter, method=method, gravity=(0.0, 0.0, 0.0),
+        options = Options(dt=dt, tol=tol, max_iter=max_iter, solver=solver, gravity=(0.0, 0.0, 0.0),
                           linear_solver=linear_solver)
         return build(self.mesh(k), Material(E=self.E, nu=self.nu, density=self.density), fixed="fixed",
                      options=options)
@@ -224,14 +224,14 @@ def _n_steps(scene: Cantilever, dt: float) -> int:
     return max(1, int(round(scene.duration / dt)))
 
 
-def run_pd(scene: Cantilever, k: int, dt: float, tol: float, method=None, duration=None):
-    """Projective dynamics (``method``: ``None`` = L-BFGS, or ``LocalGlobal()``)."""
+def run_pd(scene: Cantilever, k: int, dt: float, tol: float, solver=None, duration=None):
+    """Projective dynamics (``solver``: ``None`` = L-BFGS, or ``LocalGlobal()``)."""
     import jax
 
     from softbody import simulate
 
     scene = scene if duration is None else dataclasses.replace(scene, duration=duration)
-    model, params = scene.build(k, dt=dt, tol=tol, method=method)
+    model, params = scene.build(k, dt=dt, tol=tol, solver=solver)
     state = scene.initial_state(model, params)
     n = _n_steps(scene, dt)
     t0 = time.perf_counter()

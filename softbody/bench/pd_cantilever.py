@@ -122,7 +122,7 @@ def run(out: Path, quick: bool) -> dict:
         "loss_rel_error": abs(loss - ref_loss) / abs(ref_loss),
         **split,
         "linear_solver": type(model.linear_solver).__name__,
-        "method": repr(model.method),
+        "method": repr(model.step),
         "diffpd": DIFFPD,
         "speedup_vs_diffpd": DIFFPD["forward_s_per_frame"] / per_frame,
     }
