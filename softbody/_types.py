@@ -205,6 +205,7 @@ class Model:
     stiffness_damping: bool = False  # some material had beta > 0 at build time
     rig: object = None  # the skeleton bound to the mesh (softbody.skeleton.Rig), or None
     step: object = None  # the composed step (softbody.solvers.Step) that build resolved
+    motion: object = None  # t -> (R (3, 3), p (3,)): the fixed vertices' prescribed rigid motion, or None
 
     @property
     def n_vertices(self) -> int:

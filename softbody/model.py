@@ -80,6 +80,41 @@ def _materials(mesh: TetMesh, material) -> tuple[tuple[str, ...], list[Material]
     return tuple(names), mats, tet_material
 
 
+def _check_motion(motion, fixed: np.ndarray) -> None:
+    """Refuse a clamp motion without fixed vertices, or one that is not ``t -> (R, p)``."""
+    if motion is None:
+        return
+    if not callable(motion):
+        raise SceneError("motion must be a function t -> (rotation (3, 3), translation (3,)), got "
+                         f"{type(motion).__name__}")
+    if len(fixed) == 0:
+        raise SceneError("motion moves the fixed vertices, but the scene has none: pass fixed=... to build")
+    try:
+        rot, shift = motion(jnp.asarray(0.0))
+        rot, shift = np.asarray(rot, np.float64), np.asarray(shift, np.float64)
+    except Exception as err:  # the user's function failed: say where
+        raise SceneError(f"motion(0.0) failed ({err}); it must return (rotation (3, 3), translation (3,))") from err
+    if rot.shape != (3, 3) or shift.shape != (3,) or not (np.all(np.isfinite(rot)) and np.all(np.isfinite(shift))):
+        raise SceneError(f"motion(0.0) must return a finite rotation (3, 3) and translation (3,), got shapes "
+                         f"{rot.shape} and {shift.shape}")
+    if np.abs(rot.T @ rot - np.eye(3)).max() > 1e-9 or np.linalg.det(rot) < 0:
+        raise SceneError("motion(0.0)[0] is not a rotation (R^T R = I, det R = 1); a clamp moves rigidly")
+
+
+def clamp_positions(model: Model, x_rest, time):
+    """Where the prescribed motion puts the fixed vertices at ``time``.
+
+    Arguments:
+        model: a scene built with ``motion``; x_rest: ``(n, 3)`` rest positions (morph
+        included); time: the time, s.
+
+    Returns:
+        ``(k, 3)`` positions of ``model.fixed``.
+    """
+    rot, shift = model.motion(jnp.asarray(time, jnp.float64))
+    return jnp.asarray(x_rest)[jnp.asarray(model.fixed)] @ jnp.asarray(rot).T + jnp.asarray(shift)
+
+
 def _rig(mesh: TetMesh, skeleton, free: np.ndarray) -> Rig | None:
     """The skeleton bound to the mesh (``None`` without one), with no fixed bone vertex."""
     if skeleton is None:
@@ -127,6 +162,7 @@ def build(
     *,
     fixed: str | Sequence[int] | Callable | None = None,
     skeleton: Skeleton | None = None,
+    motion: Callable | None = None,
     options: Options = Options(),
     actuators: Sequence = (),
     obstacles: Sequence = (),
@@ -142,6 +178,12 @@ def build(
         skeleton: a :class:`~softbody.skeleton.Skeleton` over ``bone:`` regions of the
             mesh, or ``None``; the scene then steps in its reduced coordinates
             (``model.rig`` is the skeleton bound to the mesh).
+        motion: a prescribed rigid motion of the fixed vertices (a moving clamp):
+            ``t -> (R (3, 3), p (3,))``, JAX-traceable in the time ``t`` (s); at time ``t``
+            a fixed vertex with rest position ``X`` (morph included) sits at ``R X + p``.
+            ``None`` (default): the fixed vertices stay where they start. Implicit steps
+            (:func:`~softbody.simulate.step`, rollouts, policies) follow it; the explicit
+            and Newton reference integrators refuse it.
         options: :class:`Options`.
         actuators: actuator terms (see :mod:`softbody.actuators`).
         obstacles: obstacles for contact and friction (see :mod:`softbody.obstacles`).
@@ -177,6 +219,7 @@ def build(
     local_to_data[keep] = index[: keep.sum()]
     diag_to_data = np.asarray(index[keep.sum():], np.int32)
 
+    _check_motion(motion, fixed_idx)
     rig = _rig(mesh, skeleton, free)
     terms = []
     channels: list[str] = []
@@ -200,7 +243,7 @@ def build(
         fixed=fixed_idx, free_mask=free.astype(np.float64)[:, None], pattern=pattern,
         local_to_data=local_to_data, diag_to_data=diag_to_data, terms=tuple(terms),
         channel_names=tuple(channels), obstacles=tuple(obstacles),
-        stiffness_damping=any(m.beta > 0 for m in mats), rig=rig, step=step,
+        stiffness_damping=any(m.beta > 0 for m in mats), rig=rig, step=step, motion=motion,
     )
     params = Params(
         E=jnp.asarray([m.E for m in mats], jnp.float64),
@@ -216,7 +259,9 @@ def build(
 
 
 def initial_state(model: Model, params: Params | None = None, x=None, v=None) -> State:
-    """A state at the rest shape (or at ``x``), with velocities ``v`` (default zero).
+    """A state at the rest shape (or at ``x``), with velocities ``v`` (default zero). With a
+    prescribed ``motion`` the fixed vertices of the rest shape start where it puts them at
+    ``t = 0``.
 
     Arguments:
         model: the compiled scene.
@@ -231,6 +276,8 @@ def initial_state(model: Model, params: Params | None = None, x=None, v=None) ->
     """
     n = model.n_vertices
     rest = jnp.asarray(model.mesh.points) + (params.morph if params is not None else 0.0)
+    if x is None and model.motion is not None:
+        rest = rest.at[jnp.asarray(model.fixed)].set(clamp_positions(model, rest, 0.0))
     x = rest if x is None else jnp.asarray(x, jnp.float64)
     v = jnp.zeros((n, 3)) if v is None else jnp.asarray(v, jnp.float64)
     for name, a in (("x", x), ("v", v)):

@@ -57,7 +57,7 @@ import numpy as np
 from softbody._types import RESULTS, Model, Params, Prepared, SceneError, State, StepInfo
 from softbody.elastic import deformation_gradient
 from softbody.gradients import segment_length
-from softbody.model import initial_state, prepare
+from softbody.model import clamp_positions, initial_state, prepare
 from softbody.rotation import det3
 
 Array = jax.Array
@@ -210,7 +210,9 @@ def _activation(model: Model, activation):
 
 
 def step(model: Model, prep: Prepared, state: State, activation=None, force=None) -> tuple[State, StepInfo]:
-    """One implicit-Euler PD step.
+    """One implicit-Euler PD step. In a scene with a prescribed ``motion`` the fixed
+    vertices end the step where the motion puts them at ``t + dt`` (their velocity is
+    their displacement over the step divided by ``dt``).
 
     Arguments:
         model: the compiled scene; prep: :func:`softbody.model.prepare` of its params.
@@ -221,7 +223,12 @@ def step(model: Model, prep: Prepared, state: State, activation=None, force=None
     Returns:
         ``(next_state, info)``.
     """
-    sol, info = model.options.adjoint.solve(model, prep, state, _activation(model, activation), force, static=False)
+    start = state
+    if model.motion is not None:  # the clamp: fixed vertices start the step where it ends
+        fixed = jnp.asarray(model.fixed)
+        start = eqx.tree_at(lambda s: s.x, state, state.x.at[fixed].set(
+            clamp_positions(model, prep.x_rest, state.t + model.options.dt)))
+    sol, info = model.options.adjoint.solve(model, prep, start, _activation(model, activation), force, static=False)
     v = (sol.x - state.x) / model.options.dt
     return State(x=sol.x, v=v, rot=sol.q, t=state.t + model.options.dt), info
 
