@@ -381,7 +381,9 @@ def solve_static(model: Model, params: Params, force=None, activation=None, x0=N
     Arguments:
         force: ``(n, 3)`` external forces in newtons, or ``None``.
         activation: ``(n_channels,)`` or ``None``.
-        x0: initial guess ``(n, 3)`` (default: the rest shape).
+        x0: initial guess ``(n, 3)`` (default: the rest shape, with a prescribed ``motion``
+            its fixed vertices where the motion puts them at ``t = 0``), which also holds the
+            fixed vertices' positions.
         throw: raise :class:`SimulationError` when ``info.result`` is not
             ``RESULTS.success`` (the default); ``False`` returns ``(x, info)`` whatever the
             result.
