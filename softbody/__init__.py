@@ -60,7 +60,8 @@ _NAMES = {
     "Skeleton": "softbody.skeleton",
     "Contact": "softbody.contact",
     "RESULTS": "softbody._types",
-    **dict.fromkeys(("SimulationError", "Trajectory", "check_trajectory", "rollout", "solve_static", "step"), "softbody.simulate"),
+    **dict.fromkeys(("SimulationError", "Trajectory", "check_trajectory", "contact_forces", "rollout", "solve_static",
+                    "step"), "softbody.simulate"),
     **dict.fromkeys(("LBFGS", "LocalGlobal"), "softbody.solvers"),
     **dict.fromkeys(("Adjoint", "Implicit", "ImplicitForward", "Unrolled", "check_grad"), "softbody.gradients"),
 }

@@ -89,7 +89,10 @@ from softbody._interfaces import Coordinates
 from softbody.solvers import NonlinearSolver, Solution, StepProblem
 from softbody.splitting import Naive, ScaledDiagonal, Splitting
 
-__all__ = ["Contact"]
+__all__ = ["CONTACT_STATES", "Contact"]
+
+#: The contact states that :meth:`Contact.report` gives, by code.
+CONTACT_STATES = ("none", "stick", "slide")
 
 
 # --------------------------------------------------------------------------------------
@@ -123,6 +126,13 @@ def _contact_step(y, x_n, v_n, h, frame, free):
     vertex ``i`` is ``h P_i (x_i - y_i)``; ``P_i`` scales its normal and tangential parts
     alike, so the cone test needs displacements only.
     """
+    touching, _, correction = _contact_state(y, x_n, v_n, h, frame, free)
+    return y + jnp.where(touching[:, None], correction, 0.0)
+
+
+def _contact_state(y, x_n, v_n, h, frame, free):
+    """The contact step's decision per vertex: ``(touching (n,), stick (n,), correction
+    (n, 3))`` (arguments as for :func:`_contact_step`)."""
     phi, normal, vel, mu_s, mu_k, e = frame
     approach = jnp.sum((v_n - vel) * normal, axis=-1)  # < 0: moving into the obstacle
     depth = h * e * jnp.maximum(-approach, 0.0) - phi  # normal correction that reaches the target
@@ -133,7 +143,7 @@ def _contact_step(y, x_n, v_n, h, frame, free):
     stick = slip_len <= mu_s * depth
     slide = -(mu_k * depth)[:, None] * unit(slip_t, jnp.zeros_like(slip_t))
     correction = depth[:, None] * normal + jnp.where(stick[:, None], -slip_t, slide)
-    return y + jnp.where(touching[:, None], correction, 0.0)
+    return touching, stick, correction
 
 
 # --------------------------------------------------------------------------------------
@@ -274,6 +284,31 @@ class Contact:
             return x_new, q, residual  # = |grad Phi(x) - r|
 
         return fixed_point_map, jnp.broadcast_to(jnp.sqrt(p) * problem.free, problem.x_n.shape).ravel()
+
+    def report(self, problem: StepProblem, coordinates: Coordinates, x, q):
+        """The contact forces and states at a step's solution.
+
+        At the fixed point the force residual ``grad Phi - r`` vanishes, so the force the
+        obstacles exert on a vertex in contact is ``r = grad Phi(x)``; the vertex sticks
+        or slides as the contact step decides at ``x`` (the last iteration's decision).
+
+        Arguments:
+            problem: the step; coordinates: its unknowns.
+            x: ``(n, 3)`` the step's solution; q: ``(4, t)`` rotations of ``x``.
+
+        Returns:
+            ``(force (n, 3), state (n,))``: forces in N (zero off contact) and int8 states
+            ``CONTACT_STATES`` (0: no contact, 1: sticking, 2: sliding).
+        """
+        p = self._sweep_diagonal(problem)
+        touching, place, _ = coordinates.contact_sweep(problem, p)
+        x, _ = place(x)
+        _, g, _ = problem.evaluate(x, q)
+        y = x - g / p
+        frame = _nearest_obstacle(problem.obstacles, y, problem.time + problem.dt)
+        contact, stick, _ = _contact_state(y, problem.x_n, problem.v_n, problem.dt, frame, touching)
+        state = jnp.where(contact, jnp.where(stick, 1, 2), 0).astype(jnp.int8)
+        return jnp.where(contact[:, None], g, 0.0), state
 
     def _sweep_diagonal(self, problem: StepProblem):
         """``P = M/h^2 + D`` ``(n, 1)`` of the splitting sweep (1 on fixed vertices, which never

@@ -213,15 +213,12 @@ def step_gradient_vjp(model: Model, prep: Prepared, x_n, v_n, q_n, activation, f
     return vjp(jnp.ones_like(value))
 
 
-def solve_step(model: Model, prep: Prepared, state: State, activation, force, *, static: bool,
-               unrolled=False) -> tuple[Solution, StepInfo]:
-    """Run the model's composed step (:class:`softbody.solvers.Step`) on one step (or a static solve).
+def step_problem(model: Model, prep: Prepared, state: State, activation, force, *, static: bool):
+    """The :class:`~softbody.solvers.StepProblem` of one step (or static solve) from ``state``.
 
-    ``unrolled=Unroll(extra=k)`` runs a fixed-trip loop that reverse-mode autodiff
-    differentiates as it ran, with ``k`` iterations after convergence (see
-    :func:`softbody.solvers.iterate` and :class:`softbody.solvers.Unroll`);
-    ``False`` runs a ``while_loop`` (differentiate it with the implicit adjoint,
-    :class:`softbody.gradients.Implicit`).
+    Returns:
+        ``(problem, x0, threshold, scale)``: the problem, the start iterate ``(n, 3)``, the
+        force residual to reach and the residual's scale (see :func:`step_objective`).
     """
     evaluate, scale = step_objective(model, prep, state.x, state.v, state.rot, activation, force, static=static)
     solver = model.linear_solver
@@ -240,7 +237,21 @@ def solve_step(model: Model, prep: Prepared, state: State, activation, force, *,
         # Actuators may load a body with no external force: measure the residual against
         # the load and the initial force imbalance together.
         scale = scale + jnp.sqrt(jnp.sum(evaluate(x0, state.rot)[1] ** 2))
-    threshold = opts.tol * scale + opts.atol
+    return problem, x0, opts.tol * scale + opts.atol, scale
+
+
+def solve_step(model: Model, prep: Prepared, state: State, activation, force, *, static: bool,
+               unrolled=False) -> tuple[Solution, StepInfo]:
+    """Run the model's composed step (:class:`softbody.solvers.Step`) on one step (or a static solve).
+
+    ``unrolled=Unroll(extra=k)`` runs a fixed-trip loop that reverse-mode autodiff
+    differentiates as it ran, with ``k`` iterations after convergence (see
+    :func:`softbody.solvers.iterate` and :class:`softbody.solvers.Unroll`);
+    ``False`` runs a ``while_loop`` (differentiate it with the implicit adjoint,
+    :class:`softbody.gradients.Implicit`).
+    """
+    problem, x0, threshold, scale = step_problem(model, prep, state, activation, force, static=static)
+    opts = model.options
     sol = model.step.run(problem, x0, state.rot, threshold, opts.max_iter, unrolled)
     inverted = jnp.sum(rot.det3(deformation_gradient(model, prep.dminv, sol.x)) <= 0)
     inverted0 = jnp.sum(rot.det3(deformation_gradient(model, prep.dminv, state.x)) <= 0)

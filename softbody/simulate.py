@@ -54,10 +54,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from softbody import rotation
 from softbody._types import RESULTS, Model, Params, Prepared, SceneError, State, StepInfo
 from softbody.elastic import deformation_gradient
 from softbody.gradients import segment_length
 from softbody.model import clamp_positions, initial_state, prepare
+from softbody.objective import step_problem
 from softbody.rotation import det3
 
 Array = jax.Array
@@ -223,14 +225,70 @@ def step(model: Model, prep: Prepared, state: State, activation=None, force=None
     Returns:
         ``(next_state, info)``.
     """
-    start = state
-    if model.motion is not None:  # the clamp: fixed vertices start the step where it ends
-        fixed = jnp.asarray(model.fixed)
-        start = eqx.tree_at(lambda s: s.x, state, state.x.at[fixed].set(
-            clamp_positions(model, prep.x_rest, state.t + model.options.dt)))
+    start = _step_start(model, prep, state)
     sol, info = model.options.adjoint.solve(model, prep, start, _activation(model, activation), force, static=False)
     v = (sol.x - state.x) / model.options.dt
     return State(x=sol.x, v=v, rot=sol.q, t=state.t + model.options.dt), info
+
+
+def _step_start(model: Model, prep: Prepared, state: State) -> State:
+    """The state a step starts from: with a prescribed motion, the fixed vertices moved to
+    where the clamp is at the step's end."""
+    if model.motion is None:
+        return state
+    fixed = jnp.asarray(model.fixed)
+    return eqx.tree_at(lambda s: s.x, state, state.x.at[fixed].set(
+        clamp_positions(model, prep.x_rest, state.t + model.options.dt)))
+
+
+def contact_forces(model: Model, params: Params, traj: Trajectory, controls=None, forces=None,
+                   t0: float = 0.0) -> tuple[Array, Array]:
+    """The contact forces and contact states of every step of a trajectory.
+
+    Each step's solution is a fixed point of the contact iteration, at which the force the
+    obstacles exert on a vertex is the step objective's gradient there
+    (:meth:`softbody.contact.Contact.report`); the states are the contact step's decision
+    at the solution. Computed from the trajectory (one objective evaluation per step, all
+    steps at once), so rollouts carry no contact arrays.
+
+    Arguments:
+        model, params: the scene and parameters of the rollout.
+        traj: its :class:`Trajectory` (``x``, ``v`` of shape ``(T + 1, n, 3)``).
+        controls, forces: the rollout's controls ``(T, n_channels)`` and external forces
+            ``(T, n, 3)``, or ``None``.
+        t0: the time of the rollout's first state, s (moving obstacles read it).
+
+    Returns:
+        ``(force (T, n, 3), state (T, n))``: at the end of each step, the force on each
+        vertex from the obstacles (N; zero off contact) and its int8 state, a code into
+        :data:`softbody.contact.CONTACT_STATES` (0: none, 1: stick, 2: slide).
+
+    Raises:
+        SceneError: the scene has no obstacles, or shapes that do not fit.
+    """
+    if model.step.contact is None:
+        raise SceneError("contact_forces needs a scene with obstacles; this one has none")
+    n_steps = traj.x.shape[0] - 1
+    controls, forces, n_steps = _check_controls(model, controls, forces, n_steps)
+    return _contact_forces(model, params, traj.x, traj.v, controls, forces, jnp.asarray(t0, jnp.float64))
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _contact_forces(model, params, xs, vs, controls, forces, t0):
+    prep = prepare(model, params)
+    free = jnp.asarray(model.free_mask)
+    steps = jnp.arange(xs.shape[0] - 1)
+
+    def one(k, x_n, v_n, x, a, f):
+        q_n = rotation.cold_start(deformation_gradient(model, prep.dminv, x_n))
+        state = _step_start(model, prep, State(x=x_n, v=v_n, rot=q_n, t=t0 + k * model.options.dt))
+        problem, _, _, _ = step_problem(model, prep, state, _activation(model, a), f, static=False)
+        q = rotation.cold_start(deformation_gradient(model, prep.dminv, jnp.where(free > 0, x, state.x)))
+        return model.step.contact.report(problem, model.step.coordinates, x, q)
+
+    a = controls if controls is not None else jnp.zeros((len(steps), model.n_channels))
+    return jax.vmap(one, in_axes=(0, 0, 0, 0, 0, None if forces is None else 0))(
+        steps, xs[:-1], vs[:-1], xs[1:], a, forces)
 
 
 def _check_controls(model: Model, controls, forces, n_steps):

@@ -16,11 +16,11 @@ import numpy as np
 import pytest
 
 from softbody import contact, io
-from softbody.contact import Contact
+from softbody.contact import CONTACT_STATES, Contact
 from softbody.material import Material
 from softbody.meshing import examples
 from softbody.meshing.grid import grid_box
-from softbody.model import Options, build, initial_state, prepare
+from softbody.model import Options, SceneError, build, initial_state, prepare
 from softbody.obstacles import (
     Box,
     Capsule,
@@ -32,7 +32,7 @@ from softbody.obstacles import (
     Sphere,
     from_dict,
 )
-from softbody.simulate import rollout, step
+from softbody.simulate import contact_forces, rollout, step
 from softbody.solvers import LBFGS, LocalGlobal, StepProblem, Vertices
 from softbody.splitting import Diagonal, Naive, ScaledDiagonal, _pd_split, splitting_spectral_radius
 
@@ -269,6 +269,10 @@ def test_contact_rejects_bad_settings_and_mismatched_parameters():
     wrong = ((Plane(), Sphere().init_params()),)
     with pytest.raises(ObstacleError, match="got a SphereParams"):
         Contact().run(problem._replace(obstacles=wrong), Vertices(), LBFGS(), x, None, 1e-6, 10)
+    model, params = build(grid_box(cells=(1, 1, 1)), Material(), fixed="xmin")
+    traj = rollout(model, params, initial_state(model, params), n_steps=1)
+    with pytest.raises(SceneError, match="contact_forces needs a scene with obstacles"):
+        contact_forces(model, params, traj)
     with pytest.raises(ObstacleError, match="obstacle 0 is a str"):
         Contact().run(problem._replace(obstacles=(("floor", {}),)), Vertices(), LBFGS(), x, None, 1e-6, 10)
 
@@ -310,37 +314,71 @@ def with_plane(params, **values):
 def on_incline(cube_scene, tan_theta, mu_k, n_steps):
     """Roll the cube out, set down on a plane tilted by theta about y (gravity -z).
 
-    Returns ``(com, bottom, traj)``: the centre of mass's and the bottom vertices'
-    displacements along the slope (downhill) per frame, and the trajectory.
+    Returns ``(com, bottom, traj, contact)``: the centre of mass's and the bottom vertices'
+    displacements along the slope (downhill) per frame, the trajectory, and its contact
+    forces and states (``contact_forces``).
     """
     mesh, model, params, mass = cube_scene
     r = rot_y(np.arctan(tan_theta))
     x0 = mesh.points @ r.T
     params = with_plane(params, normal=r[:, 2], mu_k=mu_k)
-    traj = rollout(model, params, initial_state(model, params, x=x0), forces=gravity(mass, n_steps))
+    forces = gravity(mass, n_steps)
+    traj = rollout(model, params, initial_state(model, params, x=x0), forces=forces)
     along = (np.asarray(traj.x) - x0) @ r[:, 0]
-    return along.mean(axis=1), along[:, mesh.regions["zmin"].vertices], traj
+    contact = contact_forces(model, params, traj, forces=forces)
+    return along.mean(axis=1), along[:, mesh.regions["zmin"].vertices], traj, contact
 
 
 def test_cube_sticks_below_and_slides_above_the_static_threshold(cube_scene):
     # tan(theta) = 0.9 mu_s: once set down (edge micro-slip while the load ramps up), it stays
-    com, bottom, traj = on_incline(cube_scene, 0.9 * MU_S, MU_S, 50)
+    com, bottom, traj, contact = on_incline(cube_scene, 0.9 * MU_S, MU_S, 50)
     assert np.asarray(traj.info.converged).all()
     assert np.abs(bottom[40:] - bottom[40]).max() < 1e-7, (
         "contact vertices must not slip while sticking"
     )
     assert np.abs(com[40:] - com[40]).max() < 1e-7, "the body must not creep"
     assert np.abs(bottom).max() < 2e-4
+    # At rest the plane carries the weight: bottom vertices only, all sticking, inside the
+    # cone (the uphill edge carries the least and may carry nothing).
+    mesh, mass = cube_scene[0], cube_scene[3].sum()
+    force, state = (np.asarray(a)[40:] for a in contact)
+    bottom_vertices = mesh.regions["zmin"].vertices
+    assert np.all(np.isin(state[:, bottom_vertices], [CONTACT_STATES.index("none"), CONTACT_STATES.index("stick")]))
+    assert (state[:, bottom_vertices] > 0).sum(axis=1).min() >= 15
+    assert np.all(np.delete(state, bottom_vertices, axis=1) == CONTACT_STATES.index("none"))
+    np.testing.assert_allclose(force.sum(axis=1), np.broadcast_to([0.0, 0.0, mass * G], (10, 3)),
+                               atol=1e-3 * mass * G)
+    n = rot_y(np.arctan(0.9 * MU_S))[:, 2]
+    touching = state > 0
+    normal = force @ n
+    tangential = np.linalg.norm(force - normal[..., None] * n, axis=-1)
+    assert np.all(normal[touching] > 0) and np.all(tangential[touching] <= MU_S * normal[touching] * (1 + 1e-6))
 
     # tan(theta) = 1.1 mu_s: it slides with a = g (sin - mu_k cos), mu_k = 0.8 mu_s
     theta = np.arctan(1.1 * MU_S)
-    com, bottom, traj = on_incline(cube_scene, 1.1 * MU_S, MU_K, 40)
+    com, bottom, traj, contact = on_incline(cube_scene, 1.1 * MU_S, MU_K, 40)
     assert np.asarray(traj.info.converged).all()
     expected = G * (np.sin(theta) - MU_K * np.cos(theta))
     a = acceleration(com, DT, 15)  # after the ramp and its transient
     assert abs(a - expected) < 0.05 * expected, (a, expected)
     normal_height = np.asarray(traj.x) @ rot_y(theta)[:, 2]
     assert normal_height.min() > -1e-12, "no vertex may end a step below the incline"
+    # Sliding: every contact vertex is on the kinetic cone's edge, and the plane carries
+    # the weight's normal part (m g cos theta: no acceleration across the plane).
+    force, state = (np.asarray(a)[15:] for a in contact)
+    touching = state > 0
+    assert np.all(state[touching] == CONTACT_STATES.index("slide")) and touching.sum(axis=1).min() >= 4
+    n = rot_y(theta)[:, 2]
+    normal = force @ n
+    tangential = np.linalg.norm(force - normal[..., None] * n, axis=-1)
+    # r = grad Phi at the solution, whose residual norm is at most tol |M s / h^2|: each
+    # vertex's normal and tangential parts are off by at most that much.
+    masses = cube_scene[3]
+    residual = 1e-8 * np.linalg.norm(masses * np.asarray(traj.x)[16:], axis=(1, 2)) / DT**2
+    assert np.all(np.abs(tangential - MU_K * normal)[touching] <= (1 + MU_K) * np.broadcast_to(
+        residual[:, None], touching.shape)[touching])
+    mass = masses.sum()
+    np.testing.assert_allclose(normal.sum(axis=1), mass * G * np.cos(theta), rtol=0.01)
 
 
 def test_cube_pushed_below_and_above_static_friction(cube_scene):
