@@ -289,8 +289,9 @@ class Contact:
         """The contact forces and states at a step's solution.
 
         At the fixed point the force residual ``grad Phi - r`` vanishes, so the force the
-        obstacles exert on a vertex in contact is ``r = grad Phi(x)``; the vertex sticks
-        or slides as the contact step decides at ``x`` (the last iteration's decision).
+        obstacles exert on a vertex in contact is ``r = grad Phi(x)``; a vertex is in contact
+        where the contact step acts at ``x``, and slides where it ends the step displaced
+        along the obstacle (see the comment in the code for the threshold).
 
         Arguments:
             problem: the step; coordinates: its unknowns.
@@ -306,8 +307,19 @@ class Contact:
         _, g, _ = problem.evaluate(x, q)
         y = x - g / p
         frame = _nearest_obstacle(problem.obstacles, y, problem.time + problem.dt)
-        contact, stick, _ = _contact_state(y, problem.x_n, problem.v_n, problem.dt, frame, touching)
-        state = jnp.where(contact, jnp.where(stick, 1, 2), 0).astype(jnp.int8)
+        contact, _, _ = _contact_state(y, problem.x_n, problem.v_n, problem.dt, frame, touching)
+        # Stick or slide from the solution itself: a sticking vertex ends the step with no
+        # tangential displacement relative to the obstacle; a sliding one keeps at least
+        # (mu_s - mu_k) depth of it (its sweep slip exceeded mu_s depth, the kinetic cone
+        # took back mu_k depth), with depth = r_n / P the normal force over the vertex's
+        # sweep weight. Half that margin separates the two robustly (the decision of the
+        # contact step itself is a tie at the cone's edge).
+        _, normal, vel, mu_s, mu_k, _ = frame
+        slip = x - problem.x_n - problem.dt * vel
+        slip_t = norm(slip - jnp.sum(slip * normal, axis=-1, keepdims=True) * normal)
+        depth = jnp.maximum(jnp.sum(g * normal, axis=-1), 0.0) / p[:, 0]
+        sliding = slip_t > jnp.maximum(0.5 * (mu_s - mu_k), 1e-6) * depth
+        state = jnp.where(contact, jnp.where(sliding, 2, 1), 0).astype(jnp.int8)
         return jnp.where(contact[:, None], g, 0.0), state
 
     def _sweep_diagonal(self, problem: StepProblem):

@@ -18,7 +18,7 @@ from softbody.meshing import Region
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, SceneError, build, initial_state, prepare
 from softbody.obstacles import Plane
-from softbody.simulate import rollout
+from softbody.simulate import contact_forces, rollout
 from softbody.solvers import NonlinearSolver
 from softbody.skeleton import (Fixed, Free, Link, Prismatic, Reduced, Revolute, Skeleton, SkeletonError,
                                schur_direction, schur_factor)
@@ -428,17 +428,38 @@ def test_jointed_body_sticks_on_an_incline_below_the_friction_angle_and_slides_a
         for link in range(2):
             assert _max_distance_change(xs, rig.bone[rig.vertex_link == link]) < 1e-10
         along = (xs - x0) @ r[:, 0]
-        return along.mean(axis=1), along[:, mesh.regions["zmin"].vertices]
+        forces = ramped_gravity(mass, n_steps, dt)
+        return along.mean(axis=1), along[:, mesh.regions["zmin"].vertices], contact_forces(model, p, traj, forces=forces), xs
 
-    com, bottom = on_incline(0.9 * mu_s, mu_s, 50)
+    com, bottom, contact, _ = on_incline(0.9 * mu_s, mu_s, 50)
     assert np.abs(bottom[40:] - bottom[40]).max() < 1e-7, "contact vertices must not slip while sticking"
     assert np.abs(com[40:] - com[40]).max() < 1e-7, "the body must not creep"
     assert np.abs(bottom).max() < 1e-4
+    # Resting, the plane carries the weight through skin vertices only (bones take no contact).
+    force, state = (np.asarray(a)[40:] for a in contact)
+    np.testing.assert_allclose(force.sum(axis=1), np.broadcast_to([0.0, 0.0, mass.sum() * G], (10, 3)),
+                               atol=1e-3 * mass.sum() * G)
+    # Every contact vertex sticks, inside the static cone (some at its edge, as tan theta
+    # = 0.9 mu_s is close to it).
+    assert np.all(state[:, rig.bone] == 0) and np.all(np.isin(state, [0, 1]))
+    n = rot_y(np.arctan(0.9 * mu_s))[:, 2]
+    normal = force @ n
+    tangential = np.linalg.norm(force - normal[..., None] * n, axis=-1)
+    assert np.all(normal[state == 1] > 0) and np.all(tangential[state == 1] <= mu_s * normal[state == 1] * (1 + 1e-6))
 
-    com, _ = on_incline(1.1 * mu_s, mu_k, 40)
+    com, _, contact, xs = on_incline(1.1 * mu_s, mu_k, 40)
     theta = np.arctan(1.1 * mu_s)
     expected = G * (np.sin(theta) - mu_k * np.cos(theta))
     assert acceleration(com, dt, 15) == pytest.approx(expected, rel=0.01)
+    force, state = (np.asarray(a)[15:] for a in contact)
+    touching = state > 0
+    assert np.all(state[touching] == 2) and touching.sum(axis=1).min() >= 4  # sliding, all of them
+    n = rot_y(theta)[:, 2]
+    normal = force @ n
+    tangential = np.linalg.norm(force - normal[..., None] * n, axis=-1)
+    # r = grad Phi at the solution, off by at most the residual bound tol |M s / h^2|
+    bound = (1 + mu_k) * 1e-8 * np.linalg.norm(mass * xs[16:], axis=(1, 2)) / dt**2
+    assert np.all((np.abs(tangential - mu_k * normal) <= bound[:, None])[touching])
 
 
 @pytest.mark.slow
