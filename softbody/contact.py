@@ -126,13 +126,13 @@ def _contact_step(y, x_n, v_n, h, frame, free):
     vertex ``i`` is ``h P_i (x_i - y_i)``; ``P_i`` scales its normal and tangential parts
     alike, so the cone test needs displacements only.
     """
-    touching, _, correction = _contact_state(y, x_n, v_n, h, frame, free)
+    touching, correction = _contact_state(y, x_n, v_n, h, frame, free)
     return y + jnp.where(touching[:, None], correction, 0.0)
 
 
 def _contact_state(y, x_n, v_n, h, frame, free):
-    """The contact step's decision per vertex: ``(touching (n,), stick (n,), correction
-    (n, 3))`` (arguments as for :func:`_contact_step`)."""
+    """The contact step's decision per vertex: ``(touching (n,), correction (n, 3))``
+    (arguments as for :func:`_contact_step`)."""
     phi, normal, vel, mu_s, mu_k, e = frame
     approach = jnp.sum((v_n - vel) * normal, axis=-1)  # < 0: moving into the obstacle
     depth = h * e * jnp.maximum(-approach, 0.0) - phi  # normal correction that reaches the target
@@ -143,7 +143,7 @@ def _contact_state(y, x_n, v_n, h, frame, free):
     stick = slip_len <= mu_s * depth
     slide = -(mu_k * depth)[:, None] * unit(slip_t, jnp.zeros_like(slip_t))
     correction = depth[:, None] * normal + jnp.where(stick[:, None], -slip_t, slide)
-    return touching, stick, correction
+    return touching, correction
 
 
 # --------------------------------------------------------------------------------------
@@ -307,7 +307,7 @@ class Contact:
         _, g, _ = problem.evaluate(x, q)
         y = x - g / p
         frame = _nearest_obstacle(problem.obstacles, y, problem.time + problem.dt)
-        contact, _, _ = _contact_state(y, problem.x_n, problem.v_n, problem.dt, frame, touching)
+        contact, _ = _contact_state(y, problem.x_n, problem.v_n, problem.dt, frame, touching)
         # Stick or slide from the solution itself: a sticking vertex ends the step with no
         # tangential displacement relative to the obstacle; a sliding one keeps at least
         # (mu_s - mu_k) depth of it (its sweep slip exceeded mu_s depth, the kinetic cone

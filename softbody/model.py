@@ -28,6 +28,7 @@ from softbody.elastic import deformation_gradient, local_matrices, rest_geometry
 from softbody.gradients import Adjoint, Implicit, Unrolled
 from softbody.material import Material, pd_weights
 from softbody.meshing import TetMesh
+from softbody.obstacles import check_motion
 from softbody.skeleton import Reduced, Rig, Skeleton, SkeletonError
 from softbody.solvers import LBFGS, NonlinearSolver, Step, Vertices
 
@@ -84,21 +85,9 @@ def _check_motion(motion, fixed: np.ndarray) -> None:
     """Refuse a clamp motion without fixed vertices, or one that is not ``t -> (R, p)``."""
     if motion is None:
         return
-    if not callable(motion):
-        raise SceneError("motion must be a function t -> (rotation (3, 3), translation (3,)), got "
-                         f"{type(motion).__name__}")
+    check_motion(motion, "build", SceneError)
     if len(fixed) == 0:
         raise SceneError("motion moves the fixed vertices, but the scene has none: pass fixed=... to build")
-    try:
-        rot, shift = motion(jnp.asarray(0.0))
-        rot, shift = np.asarray(rot, np.float64), np.asarray(shift, np.float64)
-    except Exception as err:  # the user's function failed: say where
-        raise SceneError(f"motion(0.0) failed ({err}); it must return (rotation (3, 3), translation (3,))") from err
-    if rot.shape != (3, 3) or shift.shape != (3,) or not (np.all(np.isfinite(rot)) and np.all(np.isfinite(shift))):
-        raise SceneError(f"motion(0.0) must return a finite rotation (3, 3) and translation (3,), got shapes "
-                         f"{rot.shape} and {shift.shape}")
-    if np.abs(rot.T @ rot - np.eye(3)).max() > 1e-9 or np.linalg.det(rot) < 0:
-        raise SceneError("motion(0.0)[0] is not a rotation (R^T R = I, det R = 1); a clamp moves rigidly")
 
 
 def clamp_positions(model: Model, x_rest, time):

@@ -139,6 +139,36 @@ def _direction(owner: str, name: str, value) -> np.ndarray:
     return a / length
 
 
+def check_motion(motion, owner: str, error: type[Exception] = None) -> None:
+    """Check a prescribed rigid motion ``t -> (R (3, 3), p (3,))`` by calling it at ``t = 0``
+    (a :class:`Moving` obstacle's, a moving clamp's in :func:`softbody.model.build`).
+
+    Arguments:
+        motion: the function; owner: what it belongs to, for the messages; error: the
+            exception class to raise (default :class:`ObstacleError`).
+
+    Raises:
+        error: ``motion`` is not callable, fails at ``t = 0``, or does not return a finite
+            rotation and translation of the right shapes.
+    """
+    error = error or ObstacleError
+    if not callable(motion):
+        raise error(f"{owner}: motion must be a function t -> (rotation (3, 3), translation (3,)), got "
+                    f"{type(motion).__name__}")
+    try:
+        rot, shift = motion(jnp.asarray(0.0))
+        rot, shift = np.asarray(rot, np.float64), np.asarray(shift, np.float64)
+    except Exception as err:  # the user's function failed: say where
+        raise error(f"{owner}: motion(0.0) failed ({err}); it must return (rotation (3, 3), translation (3,))") \
+            from err
+    finite = bool(np.all(np.isfinite(rot)) and np.all(np.isfinite(shift)))
+    if rot.shape != (3, 3) or shift.shape != (3,) or not finite:
+        raise error(f"{owner}: motion(0.0) must return a finite rotation (3, 3) and translation (3,), got shapes "
+                    f"{rot.shape} and {shift.shape}{'' if finite else ' with non-finite values'}")
+    if not (np.allclose(rot.T @ rot, np.eye(3), atol=1e-6) and np.linalg.det(rot) > 0):
+        raise error(f"{owner}: motion(0.0)[0] is not a rotation (R^T R = I, det R = 1), got {rot.tolist()}")
+
+
 def _rotation(owner: str, name: str, value) -> np.ndarray:
     r = _array(owner, name, value, (3, 3))
     if not (np.allclose(r.T @ r, np.eye(3), atol=1e-6) and np.linalg.det(r) > 0):
@@ -562,16 +592,7 @@ class Moving:
                 f"Moving.obstacle must be an Obstacle (Plane, Sphere, ...), "
                 f"got {type(self.obstacle).__name__}"
             )
-        if not callable(self.motion):
-            raise ObstacleError(
-                "Moving.motion must be a function t -> (rotation (3, 3), translation (3,))"
-            )
-        try:
-            rot, shift = self.motion(jnp.asarray(0.0))
-        except Exception as err:  # the user's function failed: say where
-            raise ObstacleError(f"Moving.motion(0.0) failed: {err}") from err
-        _rotation("Moving", "motion(0)[0]", rot)
-        _array("Moving", "motion(0)[1]", shift, (3,))
+        check_motion(self.motion, "Moving")
 
     @property
     def kind(self) -> str:

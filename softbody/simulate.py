@@ -54,13 +54,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from softbody import rotation
 from softbody._types import RESULTS, Model, Params, Prepared, SceneError, State, StepInfo
 from softbody.elastic import deformation_gradient
 from softbody.gradients import segment_length
 from softbody.model import clamp_positions, initial_state, prepare
 from softbody.objective import step_problem
-from softbody.rotation import det3
+from softbody.rotation import cold_start, det3
 
 Array = jax.Array
 
@@ -280,15 +279,14 @@ def _contact_forces(model, params, xs, vs, controls, forces, t0):
     steps = jnp.arange(xs.shape[0] - 1)
 
     def one(k, x_n, v_n, x, a, f):
-        q_n = rotation.cold_start(deformation_gradient(model, prep.dminv, x_n))
+        q_n = cold_start(deformation_gradient(model, prep.dminv, x_n))
         state = _step_start(model, prep, State(x=x_n, v=v_n, rot=q_n, t=t0 + k * model.options.dt))
         problem, _, _, _ = step_problem(model, prep, state, _activation(model, a), f, static=False)
-        q = rotation.cold_start(deformation_gradient(model, prep.dminv, jnp.where(free > 0, x, state.x)))
+        q = cold_start(deformation_gradient(model, prep.dminv, jnp.where(free > 0, x, state.x)))
         return model.step.contact.report(problem, model.step.coordinates, x, q)
 
-    a = controls if controls is not None else jnp.zeros((len(steps), model.n_channels))
-    return jax.vmap(one, in_axes=(0, 0, 0, 0, 0, None if forces is None else 0))(
-        steps, xs[:-1], vs[:-1], xs[1:], a, forces)
+    return jax.vmap(one, in_axes=(0, 0, 0, 0, None if controls is None else 0, None if forces is None else 0))(
+        steps, xs[:-1], vs[:-1], xs[1:], controls, forces)
 
 
 def _check_controls(model: Model, controls, forces, n_steps):
