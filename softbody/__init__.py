@@ -9,10 +9,11 @@
     traj = sb.rollout(model, params, sb.initial_state(model, params), n_steps=50)
 
 Scenes: :func:`build`, :func:`prepare`, :func:`initial_state`, :class:`Material`,
-:class:`Skeleton`, :class:`Options`, :class:`Model`, :class:`Params`, :class:`State`,
-:class:`SceneError`. A scene owns its physics: ``build(mesh, material, skeleton=...,
-obstacles=[...], actuators=[...])`` composes the step (the skeleton's reduced coordinates,
-contact where there are obstacles); the options choose only numerics.
+:class:`Skeleton`, :class:`Fix` (vertices held in chosen components), :class:`Options`,
+:class:`Model`, :class:`Params`, :class:`State`, :class:`SceneError`. A scene owns its
+physics: ``build(mesh, material, skeleton=..., obstacles=[...], actuators=[...])``
+composes the step (the skeleton's reduced coordinates, contact where there are
+obstacles); the options choose only numerics.
 Stepping: :func:`rollout`, :func:`step`, :func:`solve_static`, :class:`Trajectory`,
 :class:`StepInfo`, :class:`SimulationError`. Strategies: :class:`LBFGS`,
 :class:`LocalGlobal` (nonlinear solvers, ``Options(solver=...)``), :class:`Contact` (the
@@ -54,7 +55,7 @@ __version__ = "0.1.0"
 #: The flat namespace: public name -> the module that defines it.
 _NAMES = {
     **dict.fromkeys(("Model", "Options", "Params", "Prepared", "SceneError", "State", "StepInfo"), "softbody._types"),
-    **dict.fromkeys(("build", "initial_state", "prepare"), "softbody.model"),
+    **dict.fromkeys(("Fix", "build", "initial_state", "prepare"), "softbody.model"),
     "Material": "softbody.material",
     "RigidBody": "softbody.rigid",
     "Skeleton": "softbody.skeleton",

@@ -194,8 +194,10 @@ class Model:
     options: Options
     material_names: tuple[str, ...]
     tet_material: np.ndarray  # (t,) int32 material index per tet
-    fixed: np.ndarray  # (k,) int32 fixed vertex indices
-    free_mask: np.ndarray  # (n, 1) float64: 1 on free vertices, 0 on fixed
+    fixed: np.ndarray  # (k,) int32 indices of the vertices with a held component
+    # (n, 1) float64, 1 on free vertices, 0 on held ones; (n, 3), per component, where some
+    # vertex is held in fewer than three components (axis_keep is set): broadcasts against (n, 3)
+    free_mask: np.ndarray
     pattern: linsolve.SparsityPattern
     local_to_data: np.ndarray  # (t*16,) int32 into pattern data; nnz = dropped
     diag_to_data: np.ndarray  # (n,) int32 positions of the diagonal entries
@@ -206,6 +208,9 @@ class Model:
     rig: object = None  # the skeleton bound to the mesh (softbody.skeleton.Rig), or None
     step: object = None  # the composed step (softbody.solvers.Step) that build resolved
     motion: object = None  # t -> (R (3, 3), p (3,)): the fixed vertices' prescribed rigid motion, or None
+    # (3, nnz) float64: 1 where axis a's PD matrix keeps the entry (both vertices free along a,
+    # or a diagonal); None when no vertex is held in fewer than three components
+    axis_keep: np.ndarray | None = None
 
     @property
     def n_vertices(self) -> int:

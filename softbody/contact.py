@@ -324,7 +324,7 @@ class Contact:
 
     def _sweep_diagonal(self, problem: StepProblem):
         """``P = M/h^2 + D`` ``(n, 1)`` of the splitting sweep (1 on fixed vertices, which never
-        move)."""
+        move; a scene with contact holds vertices in all three components or none)."""
         h = problem.dt
         inertia = problem.mass / h**2 if h > 0 else jnp.zeros_like(problem.mass)
         stiffness = jnp.maximum(problem.diagonal - inertia, 0.0)

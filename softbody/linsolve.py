@@ -81,6 +81,7 @@ except ImportError:  # pragma: no cover - cholespy is a declared dependency
 __all__ = [
     "PCG",
     "DenseCholesky",
+    "PerColumn",
     "Factor",
     "LinearSolver",
     "SparseCholesky",
@@ -993,6 +994,47 @@ class SparseLDL(_HostSolver):
         x, found = jax.ffi.ffi_call(native.SOLVE_TARGET, shapes, vmap_method="sequential")(
             handle, rhs.astype(jnp.float64))
         return x.astype(rhs.dtype), found
+
+
+# --------------------------------------------------------------------------- per column
+
+
+@dataclass(frozen=True)
+class PerColumn(LinearSolver):
+    """One matrix per column of the right-hand side, all on one pattern: ``x[:, a] = A_a^-1 b[:, a]``.
+
+    The PD matrix is one scalar ``n x n`` matrix applied to the three coordinates at once;
+    a vertex held in some components only (a roller, a symmetry plane) needs the matrix of
+    each axis without the couplings of the vertices held along it. ``factorize`` takes the
+    ``(k, nnz)`` values of the ``k`` matrices and factorises each with ``solver`` (under
+    ``vmap``); ``solve`` takes ``b`` of shape ``(n, k)``. Gradients flow to ``b`` and to
+    every matrix's values as with ``solver``.
+
+    Arguments:
+        solver: the solver of each matrix (any :class:`LinearSolver`).
+
+    Raises:
+        ValueError: from ``factorize``/``solve``, on ``data`` not ``(k, nnz)`` or ``b`` not ``(n, k)``.
+    """
+
+    solver: LinearSolver
+
+    def factorize(self, pattern: SparsityPattern, data) -> Factor:
+        data = jnp.asarray(data)
+        if data.ndim != 2 or data.shape[1] != pattern.nnz:
+            raise ValueError(f"PerColumn.factorize: data must have shape (k, {pattern.nnz}), got {data.shape}")
+        return jax.vmap(lambda d: self.solver.factorize(pattern, d))(data)
+
+    def solve(self, pattern: SparsityPattern, factor: Factor, b, x0=None) -> jax.Array:
+        b = jnp.asarray(b)
+        k = jnp.shape(factor.data)[0]
+        if b.shape != (pattern.n, k):
+            raise ValueError(f"PerColumn.solve: b must have shape ({pattern.n}, {k}), one column per matrix, "
+                             f"got {b.shape}")
+        if x0 is None:
+            return jax.vmap(lambda f, c: self.solver.solve(pattern, f, c), in_axes=(0, 1), out_axes=1)(factor, b)
+        return jax.vmap(lambda f, c, g: self.solver.solve(pattern, f, c, g),
+                        in_axes=(0, 1, 1), out_axes=1)(factor, b, jnp.asarray(x0))
 
 
 # --------------------------------------------------------------------------- default

@@ -35,26 +35,70 @@ from softbody.solvers import LBFGS, NonlinearSolver, Step, Vertices
 Array = jax.Array
 
 
-def _fixed_vertices(mesh: TetMesh, fixed) -> np.ndarray:
-    if fixed is None:
-        return np.zeros(0, np.int32)
-    if isinstance(fixed, str):
-        if fixed not in mesh.regions:
-            raise SceneError(f"fixed region {fixed!r} is not in the mesh; it has {sorted(mesh.regions)}")
-        idx = mesh.regions[fixed].vertices
-    elif callable(fixed):
-        mask = np.asarray(fixed(mesh.points), bool)
+AXES = "xyz"
+
+
+@dataclasses.dataclass(frozen=True)
+class Fix:
+    """Vertices held in chosen components of their position (a scene part for ``build(fixed=...)``).
+
+    ``Fix("clamp")`` holds every component (a clamp, what a bare selection means);
+    ``Fix(selection, axes="y")`` holds only ``y``: the vertices slide freely in ``x`` and
+    ``z``, as on a roller or a symmetry plane ``y = const``; ``Fix(all, axes="z")`` on every
+    vertex of a one-layer extrusion makes it plane strain.
+
+    Arguments:
+        where: a region name, vertex indices, or a predicate ``points (n, 3) -> bool mask (n,)``.
+        axes: the held components, a non-empty subset of ``"xyz"`` (world axes).
+
+    Raises:
+        SceneError: axes that are not a non-empty subset of ``"xyz"``.
+    """
+
+    where: str | Sequence[int] | Callable
+    axes: str = AXES
+
+    def __post_init__(self):
+        if (not isinstance(self.axes, str) or not self.axes or len(set(self.axes)) != len(self.axes)
+                or not set(self.axes) <= set(AXES)):
+            raise SceneError(f"Fix.axes must name held components once each from 'xyz' (e.g. 'xyz', 'y', 'xz'), "
+                             f"got {self.axes!r}")
+
+
+def _selection(mesh: TetMesh, where) -> np.ndarray:
+    """The vertex indices a region name, index list or predicate selects (non-empty)."""
+    if isinstance(where, str):
+        if where not in mesh.regions:
+            raise SceneError(f"fixed region {where!r} is not in the mesh; it has {sorted(mesh.regions)}")
+        idx = mesh.regions[where].vertices
+    elif callable(where):
+        mask = np.asarray(where(mesh.points), bool)
         if mask.shape != (mesh.n_vertices,):
             raise SceneError(f"the fixed predicate must return a boolean mask of shape ({mesh.n_vertices},)")
         idx = np.flatnonzero(mask)
     else:
-        idx = np.unique(np.asarray(fixed, np.int64))
+        idx = np.unique(np.asarray(where, np.int64))
         if idx.size and (idx.min() < 0 or idx.max() >= mesh.n_vertices):
             raise SceneError("fixed vertex indices out of range")
     if len(idx) == 0:
-        raise SceneError(f"the fixed selection {fixed if isinstance(fixed, str) else ''!s} holds no vertices; "
+        raise SceneError(f"the fixed selection {where if isinstance(where, str) else ''!s} holds no vertices; "
                          "check the region or predicate, or pass fixed=None for a free body")
-    return np.asarray(idx, np.int32)
+    return np.asarray(idx, np.int64)
+
+
+def _fixed_mask(mesh: TetMesh, fixed) -> np.ndarray:
+    """``(n, 3)`` bool: the held components of every vertex (see :func:`build`'s ``fixed``)."""
+    held = np.zeros((mesh.n_vertices, 3), bool)
+    if fixed is None:
+        return held
+    several = isinstance(fixed, (list, tuple)) and any(isinstance(f, Fix) for f in fixed)
+    if several and not all(isinstance(f, Fix) for f in fixed):
+        raise SceneError("fixed is a list mixing Fix parts with other items: give one selection, one Fix, or a "
+                         "list of Fix parts (e.g. [Fix('clamp'), Fix('symmetry', axes='y')])")
+    for part in fixed if several else [fixed]:
+        part = part if isinstance(part, Fix) else Fix(part)
+        held[np.ix_(_selection(mesh, part.where), [AXES.index(a) for a in part.axes])] = True
+    return held
 
 
 def _materials(mesh: TetMesh, material) -> tuple[tuple[str, ...], list[Material], np.ndarray]:
@@ -90,18 +134,22 @@ def _check_motion(motion, fixed: np.ndarray) -> None:
         raise SceneError("motion moves the fixed vertices, but the scene has none: pass fixed=... to build")
 
 
-def clamp_positions(model: Model, x_rest, time):
-    """Where the prescribed motion puts the fixed vertices at ``time``.
+def clamp(model: Model, x, x_rest, time):
+    """``x`` with the held components of the fixed vertices where the prescribed motion puts
+    them at ``time`` (the free components of a partly held vertex keep their values).
 
     Arguments:
-        model: a scene built with ``motion``; x_rest: ``(n, 3)`` rest positions (morph
-        included); time: the time, s.
+        model: a scene built with ``motion``; x: ``(n, 3)`` positions; x_rest: ``(n, 3)``
+        rest positions (morph included); time: the time, s.
 
     Returns:
-        ``(k, 3)`` positions of ``model.fixed``.
+        ``(n, 3)`` positions.
     """
     rot, shift = model.motion(jnp.asarray(time, jnp.float64))
-    return jnp.asarray(x_rest)[jnp.asarray(model.fixed)] @ jnp.asarray(rot).T + jnp.asarray(shift)
+    idx = jnp.asarray(model.fixed)
+    target = jnp.asarray(x_rest)[idx] @ jnp.asarray(rot).T + jnp.asarray(shift)
+    held = jnp.asarray(model.free_mask[model.fixed] == 0)
+    return x.at[idx].set(jnp.where(held, target, x[idx]))
 
 
 def _rig(mesh: TetMesh, skeleton, free: np.ndarray) -> Rig | None:
@@ -115,6 +163,17 @@ def _rig(mesh: TetMesh, skeleton, free: np.ndarray) -> Rig | None:
         raise SkeletonError("some bone vertices are fixed; bones move with their joints (weld a bone to the "
                             "world with a root Fixed() joint instead)")
     return rig
+
+
+def _check_partial(skeleton, obstacles) -> None:
+    """Refuse partly held vertices where the step cannot hold them yet."""
+    if skeleton is not None:
+        raise SceneError("a scene with a skeleton holds vertices in all three components only: fix them with "
+                         "fixed=<selection> (or a Fix with axes='xyz'), or weld a bone with a root Fixed() joint")
+    if obstacles:
+        raise SceneError("contact holds vertices in all three components only: a scene with obstacles cannot "
+                         "use Fix(..., axes=...) with fewer than three axes yet; model the support as an "
+                         "obstacle (softbody.obstacles.Plane) or clamp the vertices fully")
 
 
 def _compose(options: Options, rig: Rig | None, obstacles: tuple) -> Step:
@@ -162,14 +221,18 @@ def build(
         mesh: the tet mesh.
         material: one :class:`Material`, or a mapping from region names to materials
             (``"default"`` for the rest).
-        fixed: the clamped vertices: a region name, vertex indices, a predicate
-            ``points (n, 3) -> bool mask (n,)``, or ``None`` for a free body.
+        fixed: the held vertices: a region name, vertex indices or a predicate
+            ``points (n, 3) -> bool mask (n,)`` (clamped in all three components), a
+            :class:`Fix` (``Fix("symmetry", axes="y")`` holds only ``y``: a roller or a
+            symmetry plane), a list of :class:`Fix` parts, or ``None`` for a free body.
+            Partly held vertices are refused with a skeleton or obstacles.
         skeleton: a :class:`~softbody.skeleton.Skeleton` over ``bone:`` regions of the
             mesh, or ``None``; the scene then steps in its reduced coordinates
             (``model.rig`` is the skeleton bound to the mesh).
         motion: a prescribed rigid motion of the fixed vertices (a moving clamp):
             ``t -> (R (3, 3), p (3,))``, JAX-traceable in the time ``t`` (s); at time ``t``
-            a fixed vertex with rest position ``X`` (morph included) sits at ``R X + p``.
+            a fixed vertex with rest position ``X`` (morph included) sits at ``R X + p``
+            (in its held components).
             ``None`` (default): the fixed vertices stay where they start. Implicit steps
             (:func:`~softbody.simulate.step`, rollouts, policies) follow it; the explicit
             and Newton reference integrators refuse it.
@@ -189,17 +252,21 @@ def build(
     if not isinstance(mesh, TetMesh):
         raise SceneError(f"mesh must be a softbody.meshing.TetMesh, got {type(mesh).__name__}")
     names, mats, tet_material = _materials(mesh, material)
-    fixed_idx = _fixed_vertices(mesh, fixed)
+    held = _fixed_mask(mesh, fixed)
+    fixed_idx = np.flatnonzero(held.any(axis=1)).astype(np.int32)
     n = mesh.n_vertices
-    free = np.ones(n, bool)
-    free[fixed_idx] = False
+    free = ~held.any(axis=1)  # vertices with no held component
+    partial = bool(np.any(held.any(axis=1) & ~held.all(axis=1)))
 
-    # Pattern: every tet couples its 4 vertices; rows/columns of fixed vertices keep only
-    # their diagonal, so the fixed unknowns decouple (their update is always zero).
+    # Pattern: every tet couples its 4 vertices; rows/columns of vertices held in all three
+    # components keep only their diagonal, so those unknowns decouple (their update is
+    # always zero). Partly held vertices keep their couplings: the matrix of axis a drops
+    # them where a vertex is held along a (axis_keep), one factorisation per axis.
     tets = mesh.tets.astype(np.int64)
     rows = np.repeat(tets, 4, axis=1).ravel()
     cols = np.tile(tets, (1, 4)).ravel()
-    keep = (free[rows] & free[cols]) | (rows == cols)
+    moving = ~held.all(axis=1)
+    keep = (moving[rows] & moving[cols]) | (rows == cols)
     diag = np.arange(n)
     pattern, index = linsolve.SparsityPattern.from_coo(
         n, np.concatenate([rows[keep], diag]), np.concatenate([cols[keep], diag]))
@@ -207,6 +274,11 @@ def build(
     local_to_data = np.full(rows.shape, nnz, np.int32)
     local_to_data[keep] = index[: keep.sum()]
     diag_to_data = np.asarray(index[keep.sum():], np.int32)
+    axis_keep = None
+    if partial:
+        _check_partial(skeleton, obstacles)
+        axis_keep = np.stack([(~held[pattern.rows, a] & ~held[pattern.cols, a]) | (pattern.rows == pattern.cols)
+                              for a in range(3)]).astype(np.float64)
 
     _check_motion(motion, fixed_idx)
     rig = _rig(mesh, skeleton, free)
@@ -223,15 +295,17 @@ def build(
         raise SceneError(f"actuator channel names must be unique, got {channels}")
 
     adjoint = options.adjoint if options.adjoint is not None else Implicit()
-    options = dataclasses.replace(
-        options, linear_solver=options.linear_solver or linsolve.auto_solver(pattern.n), adjoint=adjoint)
+    linear_solver = options.linear_solver or linsolve.auto_solver(pattern.n)
+    if partial and not isinstance(linear_solver, linsolve.PerColumn):
+        linear_solver = linsolve.PerColumn(linear_solver)
+    options = dataclasses.replace(options, linear_solver=linear_solver, adjoint=adjoint)
     step = _compose(options, rig, tuple(obstacles))
     options = dataclasses.replace(options, solver=step.solver, contact=step.contact)
     model = Model(
         mesh=mesh, options=options, material_names=names, tet_material=tet_material,
-        fixed=fixed_idx, free_mask=free.astype(np.float64)[:, None], pattern=pattern,
-        local_to_data=local_to_data, diag_to_data=diag_to_data, terms=tuple(terms),
-        channel_names=tuple(channels), obstacles=tuple(obstacles),
+        fixed=fixed_idx, free_mask=(~held).astype(np.float64) if partial else free.astype(np.float64)[:, None],
+        pattern=pattern, axis_keep=axis_keep, local_to_data=local_to_data, diag_to_data=diag_to_data,
+        terms=tuple(terms), channel_names=tuple(channels), obstacles=tuple(obstacles),
         stiffness_damping=any(m.beta > 0 for m in mats), rig=rig, step=step, motion=motion,
     )
     params = Params(
@@ -266,7 +340,7 @@ def initial_state(model: Model, params: Params | None = None, x=None, v=None) ->
     n = model.n_vertices
     rest = jnp.asarray(model.mesh.points) + (params.morph if params is not None else 0.0)
     if x is None and model.motion is not None:
-        rest = rest.at[jnp.asarray(model.fixed)].set(clamp_positions(model, rest, 0.0))
+        rest = clamp(model, rest, rest, 0.0)
     x = rest if x is None else jnp.asarray(x, jnp.float64)
     v = jnp.zeros((n, 3)) if v is None else jnp.asarray(v, jnp.float64)
     for name, a in (("x", x), ("v", v)):
@@ -314,7 +388,10 @@ def prepare(model: Model, params: Params, *, static: bool = False) -> Prepared:
     nnz = len(model.pattern.rows)
     data = jnp.zeros(nnz + 1).at[model.local_to_data].add(local.reshape(-1))[:nnz]
     data = data.at[model.diag_to_data].add(diag_mass)
-    factor = model.linear_solver.factorize(model.pattern, data)
+    # With partly held vertices, one matrix per axis (linsolve.PerColumn): each drops the
+    # couplings of the vertices held along its axis.
+    factor = model.linear_solver.factorize(
+        model.pattern, data if model.axis_keep is None else data * jnp.asarray(model.axis_keep))
     return Prepared(dminv=dminv, volume=volume, mass=mass[:, None], mass_alpha=mass_alpha[:, None],
                     w_s=w_s, w_v=w_v, w_b=w_b, x_rest=x_rest, terms=term_prep,
                     obstacles=tuple(params.obstacles), data=data,

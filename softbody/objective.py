@@ -228,7 +228,6 @@ def step_problem(model: Model, prep: Prepared, state: State, activation, force, 
     problem = StepProblem(
         evaluate=evaluate,
         precondition=lambda g: solver.solve(pattern, prep.factor, g),
-        matvec=lambda x: pattern.matvec(prep.data, x),
         diagonal=prep.data[jnp.asarray(model.diag_to_data)][:, None],
         x_n=state.x, v_n=state.v, mass=prep.mass, free=free, dt=0.0 if static else opts.dt,
         time=state.t, obstacles=tuple(zip(model.obstacles, prep.obstacles)), prepared=prep.step)

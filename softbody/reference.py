@@ -138,8 +138,7 @@ def _has_vertex_terms(model: Model) -> bool:
 
 def _free_dofs(model: Model) -> np.ndarray:
     """Indices of the free degrees of freedom in the flattened ``(n, 3)`` layout."""
-    free = np.flatnonzero(model.free_mask[:, 0] > 0)
-    return (3 * free[:, None] + np.arange(3)).ravel()
+    return np.flatnonzero(np.broadcast_to(model.free_mask, (model.n_vertices, 3)).ravel() > 0)
 
 
 def _tet_dofs(model: Model) -> np.ndarray:
@@ -476,10 +475,13 @@ def diffrax_rollout(model: Model, params: Params, state0: State, t1: float, ts, 
 
     Raises:
         ValueError: ``t1`` not after ``state0.t``, or ``ts`` not increasing inside the interval.
-        SceneError: wrong activation or force shapes.
+        SceneError: wrong activation or force shapes, or partly held vertices.
         RuntimeError: diffrax failed (e.g. ``max_steps`` reached).
     """
     _check_step_inputs(model, activation, force)
+    if model.axis_keep is not None:
+        raise SceneError("diffrax_rollout integrates whole free vertices: build the scene without partly held "
+                         "vertices (Fix with fewer than three axes), or use newton_rollout")
     t0 = float(state0.t)
     ts = np.asarray(ts, np.float64)
     if not t1 > t0:

@@ -57,7 +57,7 @@ import numpy as np
 from softbody._types import RESULTS, Model, Params, Prepared, SceneError, State, StepInfo
 from softbody.elastic import deformation_gradient
 from softbody.gradients import segment_length
-from softbody.model import clamp_positions, initial_state, prepare
+from softbody.model import clamp, initial_state, prepare
 from softbody.objective import step_problem
 from softbody.rotation import cold_start, det3
 
@@ -235,9 +235,7 @@ def _step_start(model: Model, prep: Prepared, state: State) -> State:
     where the clamp is at the step's end."""
     if model.motion is None:
         return state
-    fixed = jnp.asarray(model.fixed)
-    return eqx.tree_at(lambda s: s.x, state, state.x.at[fixed].set(
-        clamp_positions(model, prep.x_rest, state.t + model.options.dt)))
+    return eqx.tree_at(lambda s: s.x, state, clamp(model, state.x, prep.x_rest, state.t + model.options.dt))
 
 
 def contact_forces(model: Model, params: Params, traj: Trajectory, controls=None, forces=None,

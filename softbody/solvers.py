@@ -46,11 +46,11 @@ class StepProblem(NamedTuple):
     Attributes:
         evaluate: ``(x, q) -> (phi, g, q)``, see the module docstring.
         precondition: ``g -> A^-1 g`` with the prefactored PD matrix.
-        matvec: ``x -> A x``.
         diagonal: ``(n, 1)`` diagonal of ``A``.
         x_n, v_n: ``(n, 3)`` state at the start of the step.
         mass: ``(n, 1)`` lumped masses.
-        free: ``(n, 1)`` 1 on free vertices, 0 on fixed ones.
+        free: ``(n, 1)`` 1 on free vertices, 0 on held ones (``(n, 3)`` per component with
+            partly held vertices).
         dt: the time step (0 for static solves).
         time: the time at the start of the step, s.
         obstacles: ``((obstacle, obstacle_params), ...)`` of the scene.
@@ -59,7 +59,6 @@ class StepProblem(NamedTuple):
 
     evaluate: Callable
     precondition: Callable
-    matvec: Callable
     diagonal: Array
     x_n: Array
     v_n: Array
@@ -358,7 +357,7 @@ class Step:
 
         Arguments:
             prepared: the per-rollout data (:meth:`prepare`).
-            x: ``(n, 3)`` the step's solution; free: ``(n, 1)`` the free-vertex mask.
+            x: ``(n, 3)`` the step's solution; free: ``(n, 1)`` or ``(n, 3)`` the free mask.
 
         Returns:
             ``None``: the free vertices' positions themselves. Otherwise

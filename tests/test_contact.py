@@ -254,7 +254,6 @@ def test_contact_rejects_bad_settings_and_mismatched_parameters():
     problem = StepProblem(
         evaluate=None,
         precondition=None,
-        matvec=None,
         diagonal=jnp.ones((4, 1)),
         x_n=x,
         v_n=x,

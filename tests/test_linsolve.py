@@ -250,6 +250,36 @@ def test_vmap_of_gradients_over_matrices(system):
     np.testing.assert_allclose(grads[0], jax.grad(loss)(batch[0]), rtol=1e-10)
 
 
+@pytest.mark.parametrize("name", ["SparseLDL", "DenseCholesky"])
+def test_per_column_solves_each_column_with_its_matrix(system, name):
+    """``PerColumn``: three matrices on one pattern, column a of b solved with matrix a, and
+    the gradient of a loss with respect to every matrix's values against the same loss
+    taken column by column with the plain solver."""
+    pattern, data, b, x = system
+    solver = SOLVERS[name]
+    datas = np.stack([data, data.copy(), data.copy()])
+    datas[1, pattern.diagonal_index] *= 2
+    datas[2] = 0.5 * data
+    per = linsolve.PerColumn(solver)
+    xs = jax.jit(lambda d: per.solve(pattern, per.factorize(pattern, d), b))(datas)
+    for a in range(3):
+        expected = scipy.sparse.linalg.spsolve(pattern.to_scipy(datas[a]).tocsc(), b[:, a])
+        assert relative_error(xs[:, a], expected) < 1e-10
+    assert relative_error(xs[:, 0], x[:, 0]) < 1e-10 and relative_error(xs[:, 1], x[:, 1]) > 1e-3
+
+    def loss(d):
+        return jnp.sum(per.solve(pattern, per.factorize(pattern, d), b) ** 3)
+
+    def loss_by_columns(d):
+        return sum(jnp.sum(solver.solve(pattern, solver.factorize(pattern, d[a]), b[:, a]) ** 3) for a in range(3))
+
+    np.testing.assert_allclose(jax.grad(loss)(datas), jax.grad(loss_by_columns)(datas), rtol=1e-9, atol=0)
+    with pytest.raises(ValueError, match="one column per matrix"):
+        per.solve(pattern, per.factorize(pattern, datas), b[:, :2])
+    with pytest.raises(ValueError, match=r"shape \(k, "):
+        per.factorize(pattern, data)
+
+
 # --------------------------------------------------------------------------- host cache
 
 

@@ -98,7 +98,6 @@ def _iterations(model, n_plain: int):
         problem = StepProblem(
             evaluate=evaluate,
             precondition=None,
-            matvec=None,
             diagonal=prep.data[jnp.asarray(model.diag_to_data)][:, None],
             x_n=state.x,
             v_n=state.v,
