@@ -44,8 +44,9 @@ class Fix:
 
     ``Fix("clamp")`` holds every component (a clamp, what a bare selection means);
     ``Fix(selection, axes="y")`` holds only ``y``: the vertices slide freely in ``x`` and
-    ``z``, as on a roller or a symmetry plane ``y = const``; ``Fix(all, axes="z")`` on every
-    vertex of a one-layer extrusion makes it plane strain.
+    ``z``, as on a roller or a symmetry plane ``y = const``; holding ``z`` on every vertex of
+    a one-layer extrusion (``Fix(lambda p: np.ones(len(p), bool), axes="z")``) makes it
+    plane strain.
 
     Arguments:
         where: a region name, vertex indices, or a predicate ``points (n, 3) -> bool mask (n,)``.

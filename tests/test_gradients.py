@@ -40,9 +40,8 @@ def _problem(adjoint, mesh=None):
     }
 
     def loss(th):
-        p = type(params)(E=jnp.exp(th["logE"]), nu=th["nu"], density=th["density"] * 1000, alpha=th["alpha"],
-                         beta=th["beta"] / 100, morph=th["morph"], actuators=params.actuators,
-                         obstacles=params.obstacles)
+        p = params.replace(E=jnp.exp(th["logE"]), nu=th["nu"], density=th["density"] * 1000, alpha=th["alpha"],
+                           beta=th["beta"] / 100, morph=th["morph"])
         s0 = State(x=th["x0"], v=th["v0"], rot=state0.rot, t=state0.t)
         traj = rollout(model, p, s0, controls=th["activation"], forces=th["force"], n_steps=T)
         return jnp.sum(traj.x[-1] * w) + 0.01 * jnp.sum(traj.v[-1] * w)
@@ -79,9 +78,21 @@ def _with_reference_values(loss, reference):
 
 
 @pytest.fixture(scope="module")
-def gradients():
+def implicit_problem():
+    return _problem(Implicit())
+
+
+@pytest.fixture(scope="module")
+def implicit_gradient(implicit_problem):
+    """The Implicit adjoint's reverse-mode gradient of the loss (all kinds)."""
+    loss, theta = implicit_problem
+    return jax.jit(jax.grad(loss))(theta)
+
+
+@pytest.fixture(scope="module")
+def gradients(implicit_problem, implicit_gradient):
     out = {}
-    problems = {"Implicit": _problem(Implicit()), "Unrolled": _problem(Unrolled())}
+    problems = {"Implicit": implicit_problem, "Unrolled": _problem(Unrolled())}
     reference = problems["Unrolled"][0]
     for name, (loss, theta) in problems.items():
         checked = loss if name == "Unrolled" else _with_reference_values(loss, reference)
@@ -89,7 +100,7 @@ def gradients():
         # Richardson-extrapolated differences' O(eps^4) truncation reached 1.2e-6 on alpha at
         # eps = 1e-4 (1.5e-7 at 3e-5).
         errors = check_grad(checked, theta, directions=_directions(theta), eps=3e-5, verbose=False)
-        out[name] = (errors, jax.jit(jax.grad(loss))(theta))
+        out[name] = (errors, implicit_gradient if name == "Implicit" else jax.jit(jax.grad(loss))(theta))
     return out
 
 
@@ -115,7 +126,7 @@ FORWARD_KINDS = ("logE", "density", "v0", "activation", "force")
 
 
 @pytest.fixture(scope="module")
-def forward_jacobian(gradients):
+def forward_jacobian(implicit_gradient):
     """``jax.jacfwd`` through :class:`ImplicitForward` of the loss along one random unit
     direction per parameter kind (a Jacobian with one column per kind), with those
     directions' central differences of the Unrolled forward (converged to round-off, see
@@ -135,7 +146,7 @@ def forward_jacobian(gradients):
 
     jac = np.asarray(jax.jit(jax.jacfwd(along))(jnp.zeros(len(FORWARD_KINDS))))
     fd = np.array([central_difference(reference, theta, d, 3e-5) for d in directions])
-    g = gradients["Implicit"][1]
+    g = implicit_gradient
     rev = np.array([sum(float(jnp.sum(g[k] * d[k])) for k in theta) for d in directions])
     return jac, fd, rev
 

@@ -15,7 +15,7 @@ from softbody.meshing import TetMesh
 from softbody.meshing.grid import grid_box
 from softbody.model import Fix, Options, SceneError, build, initial_state
 from softbody.obstacles import Plane
-from softbody.reference import diffrax_rollout
+from softbody.reference import diffrax_rollout, newton_static
 from softbody.skeleton import Link, Skeleton
 from softbody.simulate import rollout, solve_static
 
@@ -82,6 +82,16 @@ def test_the_symmetry_plane_makes_half_a_beam_the_full_beam_statically(beams):
     loose, lp = build(HALF, MATERIAL, fixed=_clamp, options=OPTIONS)
     x_loose, _ = solve_static(loose, lp)
     assert np.abs(np.asarray(x_loose) - _half_of(x_full)).max() > 1e-3 * scale
+
+
+def test_newton_reference_holds_the_same_components(beams):
+    """The Newton reference's free degrees of freedom are per component: its equilibrium of
+    the half beam equals the PD static solve's to the solvers' tolerances."""
+    (half, hp), _ = beams
+    x_pd, _ = solve_static(half, hp)
+    x_nt, _ = newton_static(half, hp, tol=1e-10)
+    u = np.asarray(x_pd) - HALF.points
+    assert np.abs(np.asarray(x_nt) - np.asarray(x_pd)).max() <= 1e-6 * np.abs(u).max()
 
 
 def test_the_half_beam_swings_like_the_full_beam(beams):

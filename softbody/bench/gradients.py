@@ -95,9 +95,7 @@ def fd_errors(frames: int = 5, eps: float = 1e-3) -> dict:
              "x0": state0.x, "v0": state0.v, "activation": controls, "force": forces}
 
     def loss(th):
-        p = type(params)(E=jnp.exp(th["logE"]), nu=th["nu"], density=th["density"] * 1000, alpha=params.alpha,
-                         beta=params.beta, morph=params.morph, actuators=params.actuators,
-                         obstacles=params.obstacles)
+        p = params.replace(E=jnp.exp(th["logE"]), nu=th["nu"], density=th["density"] * 1000)
         s0 = State(x=th["x0"], v=th["v0"], rot=state0.rot, t=state0.t)
         return loss_of(rollout(model, p, s0, controls=th["activation"], forces=th["force"]), scene)
 
