@@ -47,7 +47,7 @@ def _forces(model: Model, prep, x0: Array, activation, force):
         total = -grad - prep.mass_alpha * v
         if model.stiffness_damping:
             f = deformation_gradient(model, prep.dminv, x)
-            r = rot.quat_to_matrix(q) if hasattr(rot, "quat_to_matrix") else rot.rotation(f, q, 0)[0]
+            r = rot.rotation(f, q, 0)[0]  # the rotations of q, with the maximiser's derivative
             f_rate = jnp.einsum("tai,ajt->ijt", v[jnp.asarray(model.mesh.tets)], g)
             stress = strain_rate_damping(f + f_rate, f, r, prep.volume, prep.w_b, 1.0)[1]
             total = total - scatter_stress(model, prep.dminv, stress)
