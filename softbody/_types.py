@@ -196,7 +196,7 @@ class Model:
     tet_material: np.ndarray  # (t,) int32 material index per tet
     fixed: np.ndarray  # (k,) int32 indices of the vertices with a held component
     # (n, 1) float64, 1 on free vertices, 0 on held ones; (n, 3), per component, where some
-    # vertex is held in fewer than three components (axis_keep is set): broadcasts against (n, 3)
+    # vertex is held in fewer than three components (see axis_keep): broadcasts against (n, 3)
     free_mask: np.ndarray
     pattern: linsolve.SparsityPattern
     local_to_data: np.ndarray  # (t*16,) int32 into pattern data; nnz = dropped
@@ -208,9 +208,6 @@ class Model:
     rig: object = None  # the skeleton bound to the mesh (softbody.skeleton.Rig), or None
     step: object = None  # the composed step (softbody.solvers.Step) that build resolved
     motion: object = None  # t -> (R (3, 3), p (3,)): the fixed vertices' prescribed rigid motion, or None
-    # (3, nnz) float64: 1 where axis a's PD matrix keeps the entry (both vertices free along a,
-    # or a diagonal); None when no vertex is held in fewer than three components
-    axis_keep: np.ndarray | None = None
 
     @property
     def n_vertices(self) -> int:
@@ -224,6 +221,17 @@ class Model:
     def corner_incidence(self) -> np.ndarray:
         """``(n, K)`` int32: each vertex's tet corners (see :func:`softbody.elastic.corner_incidence`)."""
         return corner_incidence(self.mesh.tets)
+
+    @functools.cached_property
+    def axis_keep(self) -> np.ndarray | None:
+        """``(3, nnz)`` float64: 1 where axis ``a``'s PD matrix keeps the pattern's entry (both
+        vertices free along ``a``, or a diagonal); ``None`` when no vertex is held in fewer than
+        three components (``free_mask`` then has one column and one matrix serves all axes)."""
+        if self.free_mask.shape[1] == 1:
+            return None
+        rows, cols = self.pattern.rows, self.pattern.cols
+        free = self.free_mask > 0
+        return ((free[rows] & free[cols]) | (rows == cols)[:, None]).T.astype(np.float64)
 
     @property
     def n_channels(self) -> int:

@@ -130,6 +130,11 @@ def _contact_step(y, x_n, v_n, h, frame, free):
     return y + jnp.where(touching[:, None], correction, 0.0)
 
 
+def _tangential(v, normal):
+    """The part of ``v`` ``(n, 3)`` along the obstacle, orthogonal to the unit ``normal`` ``(n, 3)``."""
+    return v - jnp.sum(v * normal, axis=-1, keepdims=True) * normal
+
+
 def _contact_state(y, x_n, v_n, h, frame, free):
     """The contact step's decision per vertex: ``(touching (n,), correction (n, 3))``
     (arguments as for :func:`_contact_step`)."""
@@ -137,8 +142,7 @@ def _contact_state(y, x_n, v_n, h, frame, free):
     approach = jnp.sum((v_n - vel) * normal, axis=-1)  # < 0: moving into the obstacle
     depth = h * e * jnp.maximum(-approach, 0.0) - phi  # normal correction that reaches the target
     touching = (depth > 0) & (free[:, 0] > 0)
-    slip = y - x_n - h * vel  # displacement relative to the obstacle's material
-    slip_t = slip - jnp.sum(slip * normal, axis=-1, keepdims=True) * normal
+    slip_t = _tangential(y - x_n - h * vel, normal)  # displacement relative to the obstacle's material
     slip_len = norm(slip_t)
     stick = slip_len <= mu_s * depth
     slide = -(mu_k * depth)[:, None] * unit(slip_t, jnp.zeros_like(slip_t))
@@ -315,8 +319,7 @@ class Contact:
         # sweep weight. Half that margin separates the two robustly (the decision of the
         # contact step itself is a tie at the cone's edge).
         _, normal, vel, mu_s, mu_k, _ = frame
-        slip = x - problem.x_n - problem.dt * vel
-        slip_t = norm(slip - jnp.sum(slip * normal, axis=-1, keepdims=True) * normal)
+        slip_t = norm(_tangential(x - problem.x_n - problem.dt * vel, normal))
         depth = jnp.maximum(jnp.sum(g * normal, axis=-1), 0.0) / p[:, 0]
         sliding = slip_t > jnp.maximum(0.5 * (mu_s - mu_k), 1e-6) * depth
         state = jnp.where(contact, jnp.where(sliding, 2, 1), 0).astype(jnp.int8)

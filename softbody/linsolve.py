@@ -1031,10 +1031,9 @@ class PerColumn(LinearSolver):
         if b.shape != (pattern.n, k):
             raise ValueError(f"PerColumn.solve: b must have shape ({pattern.n}, {k}), one column per matrix, "
                              f"got {b.shape}")
-        if x0 is None:
-            return jax.vmap(lambda f, c: self.solver.solve(pattern, f, c), in_axes=(0, 1), out_axes=1)(factor, b)
-        return jax.vmap(lambda f, c, g: self.solver.solve(pattern, f, c, g),
-                        in_axes=(0, 1, 1), out_axes=1)(factor, b, jnp.asarray(x0))
+        x0 = None if x0 is None else jnp.asarray(x0)  # None: an empty pytree, nothing to map
+        return jax.vmap(lambda f, c, g: self.solver.solve(pattern, f, c, g), in_axes=(0, 1, 1), out_axes=1)(
+            factor, b, x0)
 
 
 # --------------------------------------------------------------------------- default

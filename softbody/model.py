@@ -262,7 +262,7 @@ def build(
     # Pattern: every tet couples its 4 vertices; rows/columns of vertices held in all three
     # components keep only their diagonal, so those unknowns decouple (their update is
     # always zero). Partly held vertices keep their couplings: the matrix of axis a drops
-    # them where a vertex is held along a (axis_keep), one factorisation per axis.
+    # them where a vertex is held along a (Model.axis_keep), one factorisation per axis.
     tets = mesh.tets.astype(np.int64)
     rows = np.repeat(tets, 4, axis=1).ravel()
     cols = np.tile(tets, (1, 4)).ravel()
@@ -275,11 +275,8 @@ def build(
     local_to_data = np.full(rows.shape, nnz, np.int32)
     local_to_data[keep] = index[: keep.sum()]
     diag_to_data = np.asarray(index[keep.sum():], np.int32)
-    axis_keep = None
     if partial:
         _check_partial(skeleton, obstacles)
-        axis_keep = np.stack([(~held[pattern.rows, a] & ~held[pattern.cols, a]) | (pattern.rows == pattern.cols)
-                              for a in range(3)]).astype(np.float64)
 
     _check_motion(motion, fixed_idx)
     rig = _rig(mesh, skeleton, free)
@@ -305,7 +302,7 @@ def build(
     model = Model(
         mesh=mesh, options=options, material_names=names, tet_material=tet_material,
         fixed=fixed_idx, free_mask=(~held).astype(np.float64) if partial else free.astype(np.float64)[:, None],
-        pattern=pattern, axis_keep=axis_keep, local_to_data=local_to_data, diag_to_data=diag_to_data,
+        pattern=pattern, local_to_data=local_to_data, diag_to_data=diag_to_data,
         terms=tuple(terms), channel_names=tuple(channels), obstacles=tuple(obstacles),
         stiffness_damping=any(m.beta > 0 for m in mats), rig=rig, step=step, motion=motion,
     )

@@ -165,13 +165,18 @@ def check_motion(motion, owner: str, error: type[Exception] = None) -> None:
     if rot.shape != (3, 3) or shift.shape != (3,) or not finite:
         raise error(f"{owner}: motion(0.0) must return a finite rotation (3, 3) and translation (3,), got shapes "
                     f"{rot.shape} and {shift.shape}{'' if finite else ' with non-finite values'}")
-    if not (np.allclose(rot.T @ rot, np.eye(3), atol=1e-6) and np.linalg.det(rot) > 0):
+    if not _is_rotation(rot):
         raise error(f"{owner}: motion(0.0)[0] is not a rotation (R^T R = I, det R = 1), got {rot.tolist()}")
+
+
+def _is_rotation(r: np.ndarray) -> bool:
+    """``R^T R = I`` (to 1e-6) and ``det R > 0`` for a ``(3, 3)`` array."""
+    return bool(np.allclose(r.T @ r, np.eye(3), atol=1e-6) and np.linalg.det(r) > 0)
 
 
 def _rotation(owner: str, name: str, value) -> np.ndarray:
     r = _array(owner, name, value, (3, 3))
-    if not (np.allclose(r.T @ r, np.eye(3), atol=1e-6) and np.linalg.det(r) > 0):
+    if not _is_rotation(r):
         raise ObstacleError(
             f"{owner}.{name} must be a rotation matrix (orthonormal, det +1), got {r.tolist()}"
         )

@@ -397,6 +397,12 @@ def test_two_link_arm_joint_angles_converge_at_first_order_in_dt(arm):
     assert 0.7 < np.log2(coarse / fine) < 1.3, (coarse, fine, angles)
 
 
+def _normal_and_tangential(force, n):
+    """``(normal, |tangential|)`` parts of forces ``(..., 3)`` on a plane with unit normal ``n``."""
+    normal = force @ n
+    return normal, np.linalg.norm(force - normal[..., None] * n, axis=-1)
+
+
 @pytest.mark.slow
 def test_jointed_body_sticks_on_an_incline_below_the_friction_angle_and_slides_above_it(arm):
     """The arm (free root, elbow hinge, soft skin) set down on a tilted friction plane.
@@ -442,9 +448,7 @@ def test_jointed_body_sticks_on_an_incline_below_the_friction_angle_and_slides_a
     # Every contact vertex sticks, inside the static cone (some at its edge, as tan theta
     # = 0.9 mu_s is close to it).
     assert np.all(state[:, rig.bone] == 0) and np.all(np.isin(state, [0, 1]))
-    n = rot_y(np.arctan(0.9 * mu_s))[:, 2]
-    normal = force @ n
-    tangential = np.linalg.norm(force - normal[..., None] * n, axis=-1)
+    normal, tangential = _normal_and_tangential(force, rot_y(np.arctan(0.9 * mu_s))[:, 2])
     assert np.all(normal[state == 1] > 0) and np.all(tangential[state == 1] <= mu_s * normal[state == 1] * (1 + 1e-6))
 
     com, _, contact, xs = on_incline(1.1 * mu_s, mu_k, 40)
@@ -454,9 +458,7 @@ def test_jointed_body_sticks_on_an_incline_below_the_friction_angle_and_slides_a
     force, state = (np.asarray(a)[15:] for a in contact)
     touching = state > 0
     assert np.all(state[touching] == 2) and touching.sum(axis=1).min() >= 4  # sliding, all of them
-    n = rot_y(theta)[:, 2]
-    normal = force @ n
-    tangential = np.linalg.norm(force - normal[..., None] * n, axis=-1)
+    normal, tangential = _normal_and_tangential(force, rot_y(theta)[:, 2])
     # r = grad Phi at the solution, off by at most the residual bound tol |M s / h^2|
     bound = (1 + mu_k) * 1e-8 * np.linalg.norm(mass * xs[16:], axis=(1, 2)) / dt**2
     assert np.all((np.abs(tangential - mu_k * normal) <= bound[:, None])[touching])
