@@ -342,3 +342,5 @@ class StepInfo(eqx.Module):
     converged: Array
     inverted: Array  # number of inverted (det F <= 0) tets at the step's end
     result: Array  # int32 RESULTS code: how the step ended
+    fallback: Array  # bool: a contact step's fast iteration (ActiveSet) fell short and the proven
+    #   splitting iteration finished the step (softbody.contact.Contact)

@@ -38,7 +38,16 @@ the surface: the step's equilibrium. With the projections held fixed and no cont
 active, the iteration matrix is ``T = P^{-1} (D - L) = (M + h^2 D)^{-1} h^2 (D - L)``, the
 matrix whose spectral radius :func:`softbody.splitting.splitting_spectral_radius` measures.
 
-Scheme, convergence criterion and costs:
+**The fast iteration.** By default :class:`Contact` first runs
+:class:`~softbody.active_set.ActiveSet`, an active-set iteration on the prefactored PD
+matrix whose fixed point is this map's, exactly; the map then checks its result in one
+evaluation and finishes the step where it stopped short (``StepInfo.fallback``). The
+implicit derivative is taken through the fast map then (see
+:mod:`softbody.active_set`). ``Contact(active_set=None)`` runs the splitting alone, as
+below; scenes with a skeleton always do (reduced coordinates have no vertex Delassus
+operator yet).
+
+Scheme, convergence criterion and costs of the splitting iteration:
 
 * One iteration = one local step (``problem.evaluate``) + one diagonal sweep + the
   per-vertex contact step; no linear solve. The iterate with the smallest residual is
@@ -83,6 +92,7 @@ import jax
 import jax.numpy as jnp
 
 from softbody import anderson
+from softbody.active_set import ActiveSet
 from softbody.fixed_point import closure_convert, fixed_point
 from softbody.obstacles import check_obstacles, norm, unit
 from softbody._interfaces import Coordinates
@@ -126,7 +136,7 @@ def _contact_step(y, x_n, v_n, h, frame, free):
     vertex ``i`` is ``h P_i (x_i - y_i)``; ``P_i`` scales its normal and tangential parts
     alike, so the cone test needs displacements only.
     """
-    touching, correction = _contact_state(y, x_n, v_n, h, frame, free)
+    touching, _, correction = _contact_state(y, x_n, v_n, h, frame, free)
     return y + jnp.where(touching[:, None], correction, 0.0)
 
 
@@ -136,7 +146,7 @@ def _tangential(v, normal):
 
 
 def _contact_state(y, x_n, v_n, h, frame, free):
-    """The contact step's decision per vertex: ``(touching (n,), correction (n, 3))``
+    """The contact step's decision per vertex: ``(touching (n,), stick (n,), correction (n, 3))``
     (arguments as for :func:`_contact_step`)."""
     phi, normal, vel, mu_s, mu_k, e = frame
     approach = jnp.sum((v_n - vel) * normal, axis=-1)  # < 0: moving into the obstacle
@@ -147,7 +157,7 @@ def _contact_state(y, x_n, v_n, h, frame, free):
     stick = slip_len <= mu_s * depth
     slide = -(mu_k * depth)[:, None] * unit(slip_t, jnp.zeros_like(slip_t))
     correction = depth[:, None] * normal + jnp.where(stick[:, None], -slip_t, slide)
-    return touching, correction
+    return touching, stick, correction
 
 
 # --------------------------------------------------------------------------------------
@@ -157,7 +167,8 @@ def _contact_state(y, x_n, v_n, h, frame, free):
 
 @dataclass(frozen=True)
 class Contact:
-    """Implicit-Euler steps with contact and dry friction by the splitting iteration.
+    """Implicit-Euler steps with contact and dry friction: the splitting iteration, run after
+    the active-set iteration on the prefactored matrix (:mod:`softbody.active_set`).
 
     The contact constraint's part of a composed step (:class:`~softbody.solvers.Step`),
     chosen by :func:`~softbody.model.build` for a scene with obstacles (set
@@ -173,6 +184,10 @@ class Contact:
             :class:`~softbody.splitting.ScaledDiagonal`, whose convergence is proved;
             :class:`~softbody.splitting.Diagonal` and :class:`~softbody.splitting.Naive`
             for studies).
+        active_set: the fast iteration run before the splitting
+            (:class:`~softbody.active_set.ActiveSet`), or ``None`` for the splitting
+            iteration alone. :func:`~softbody.model.build` drops it in scenes with a
+            skeleton.
         history: Anderson history length (0: the plain splitting iteration).
         restart: Anderson restarts when the residual exceeds ``restart`` times the best
             one so far (> 1).
@@ -192,6 +207,7 @@ class Contact:
     """
 
     splitting: Splitting = field(default_factory=ScaledDiagonal)
+    active_set: ActiveSet | None = field(default_factory=ActiveSet)
     history: int = 30
     restart: float = 10.0
     margin: float = 1e-6
@@ -204,6 +220,8 @@ class Contact:
                 f"Contact.splitting must be a Splitting (Naive(), Diagonal(), ScaledDiagonal()), "
                 f"got {self.splitting!r}"
             )
+        if self.active_set is not None and not isinstance(self.active_set, ActiveSet):
+            raise ValueError(f"Contact.active_set must be an ActiveSet or None, got {self.active_set!r}")
         if int(self.history) != self.history or self.history < 0:
             raise ValueError(f"Contact.history must be an integer >= 0, got {self.history!r}")
         if not self.restart > 1:
@@ -243,15 +261,36 @@ class Contact:
                 "use ScaledDiagonal() or Diagonal()"
             )
         fixed_point_map, weight = self.map(problem, coordinates)
+        free = problem.free[:, 0] > 0
+
+        def distance(x, t):
+            return jnp.where(free, _nearest_obstacle(problem.obstacles, x, t)[0], jnp.inf)
+
+        start = jax.lax.stop_gradient(
+            jnp.minimum(distance(problem.x_n, problem.time), distance(x0, problem.time + problem.dt)))
+        fast = None
+        if self.active_set is not None:
+            delassus = jax.lax.stop_gradient(self.active_set.delassus(problem, start))
+            fast = self.active_set.map(problem, self._law(problem), delassus, self._sweep_diagonal(problem))
         solve, consts = jax.closure_convert(
             lambda x0, q0: self._solve(
-                problem, coordinates, solver, fixed_point_map, weight, x0, q0, threshold, max_iter
+                problem, coordinates, solver, fixed_point_map, weight, fast, start, distance, x0, q0,
+                threshold, max_iter
             ),
             x0,
             q0,
         )
-        sol = solve(*jax.lax.stop_gradient((x0, q0, *consts)))
-        position, consts = closure_convert(lambda x, q: fixed_point_map(x, q)[0], sol.x, sol.q)
+        sol, cache = solve(*jax.lax.stop_gradient((x0, q0, *consts)))
+        if fast is None:
+            position = lambda x, q: fixed_point_map(x, q)[0]  # noqa: E731
+        else:
+            # The fast map carries the derivative (its linearisation contracts like its
+            # iteration) unless the splitting finished the step: then a vertex outside the
+            # candidates may touch, and only the splitting map sees it.
+            def position(x, q):
+                return jax.lax.cond(sol.fallback, lambda: fixed_point_map(x, q)[0],
+                                    lambda: fast[0](x, q, cache)[0])
+        position, consts = closure_convert(position, sol.x, sol.q)
         linear_solve = functools.partial(
             anderson.linear_solve,
             history=max(int(self.history), 1),
@@ -311,7 +350,7 @@ class Contact:
         _, g, _ = problem.evaluate(x, q)
         y = x - g / p
         frame = _nearest_obstacle(problem.obstacles, y, problem.time + problem.dt)
-        contact, _ = _contact_state(y, problem.x_n, problem.v_n, problem.dt, frame, touching)
+        contact, _, _ = _contact_state(y, problem.x_n, problem.v_n, problem.dt, frame, touching)
         # Stick or slide from the solution itself: a sticking vertex ends the step with no
         # tangential displacement relative to the obstacle; a sliding one keeps at least
         # (mu_s - mu_k) depth of it (its sweep slip exceeded mu_s depth, the kinetic cone
@@ -325,6 +364,19 @@ class Contact:
         state = jnp.where(contact, jnp.where(sliding, 2, 1), 0).astype(jnp.int8)
         return jnp.where(contact[:, None], g, 0.0), state
 
+    def _law(self, problem: StepProblem):
+        """The per-vertex contact step on some vertices, as :class:`~softbody.active_set.ActiveSet` takes it."""
+        h = problem.dt
+        t_end = problem.time + h
+
+        def law(y, index, valid):
+            frame = _nearest_obstacle(problem.obstacles, y, t_end)
+            touching, stick, correction = _contact_state(
+                y, problem.x_n[index], problem.v_n[index], h, frame, valid[:, None].astype(y.dtype))
+            return touching, stick, correction, frame[1]
+
+        return law
+
     def _sweep_diagonal(self, problem: StepProblem):
         """``P = M/h^2 + D`` ``(n, 1)`` of the splitting sweep (1 on fixed vertices, which never
         move; a scene with contact holds vertices in all three components or none)."""
@@ -334,41 +386,50 @@ class Contact:
         return jnp.where(problem.free > 0, inertia + self.splitting.diagonal(stiffness), 1.0)
 
     def _solve(
-        self, problem: StepProblem, coordinates, solver, fixed_point_map, weight, x0, q0, threshold,
-        max_iter: int
-    ) -> Solution:
-        """The forward solve: the free-step shortcut, else the splitting iteration."""
+        self, problem: StepProblem, coordinates, solver, fixed_point_map, weight, fast, start, distance, x0,
+        q0, threshold, max_iter: int
+    ):
+        """The forward solve: the free-step shortcut, else the contact iteration.
+
+        Returns ``(solution, cache)``: the cache of the fast iteration's last active set
+        (``None`` without one)."""
+
+        t_end = problem.time + problem.dt
+        near = jnp.min(start) <= self.margin
+        no = jnp.asarray(False)
+        cache0 = None if fast is None else fast[1]
 
         def contact():
-            return self._iterate(fixed_point_map, weight, x0, q0, threshold, max_iter)
-
-        free = problem.free[:, 0] > 0
-        t_end = problem.time + problem.dt
-
-        def clearance(x, t):
-            phi = _nearest_obstacle(problem.obstacles, x, t)[0]
-            return jnp.min(jnp.where(free, phi, jnp.inf))
-
-        near = (
-            jnp.minimum(clearance(problem.x_n, problem.time), clearance(x0, t_end)) <= self.margin
-        )
+            if fast is None:
+                return self._iterate(fixed_point_map, weight, x0, q0, threshold, max_iter)._replace(fallback=no), cache0
+            iteration, cache = fast
+            quick, cache = self.active_set.run(iteration, cache, weight, x0, q0, threshold, max_iter)
+            # The splitting map checks the result in one evaluation (its fixed point is the
+            # same) and finishes the step where the fast iteration stopped short or a vertex
+            # outside its candidates touches.
+            check = self._iterate(fixed_point_map, weight, quick.x, quick.q, threshold,
+                                  jnp.maximum(max_iter - quick.iterations, 1))
+            return check._replace(iterations=check.iterations + quick.iterations,
+                                  evaluations=check.evaluations + quick.evaluations,
+                                  fallback=(quick.gnorm > threshold) | (check.iterations > 1)), cache
 
         def free_step():  # the solver sees no obstacles: it is contact-free by definition
-            return coordinates.minimize(solver, problem._replace(obstacles=()), x0, q0, threshold, max_iter)
+            sol = coordinates.minimize(solver, problem._replace(obstacles=()), x0, q0, threshold, max_iter)
+            return sol._replace(fallback=no), cache0
 
         def skipped():
             zero = jnp.asarray(0)
-            return Solution(x0, q0, zero, zero, jnp.asarray(jnp.inf, x0.dtype))
+            return Solution(x0, q0, zero, zero, jnp.asarray(jnp.inf, x0.dtype), no), cache0
 
         # Each branch is traced once: the contact iteration runs when the start is near an
         # obstacle or when the free step's result penetrates one.
-        sol = jax.lax.cond(near, skipped, free_step)
+        sol, cache = jax.lax.cond(near, skipped, free_step)
 
         def redo():
-            again = contact()
-            return again._replace(evaluations=again.evaluations + sol.evaluations)
+            again, cache = contact()
+            return again._replace(evaluations=again.evaluations + sol.evaluations), cache
 
-        return jax.lax.cond(near | (clearance(sol.x, t_end) < 0), redo, lambda: sol)
+        return jax.lax.cond(near | (jnp.min(distance(sol.x, t_end)) < 0), redo, lambda: (sol, cache))
 
     def _iterate(self, fixed_point_map, weight, x0, q0, threshold, max_iter: int) -> Solution:
         """Anderson-accelerated fixed-point iteration; returns the best iterate's map output."""

@@ -122,7 +122,8 @@ def explicit_rollout(model: Model, params: Params, state0: State, controls=None,
     zeros = jnp.zeros(n_steps)
     info = StepInfo(iterations=zeros.astype(int), evaluations=jnp.ones(n_steps, int), residual=zeros,
                     converged=jnp.ones(n_steps, bool), inverted=zeros.astype(int),
-                    result=jnp.where(bad, int(RESULTS.nonfinite), int(RESULTS.success)).astype(jnp.int32))
+                    result=jnp.where(bad, int(RESULTS.nonfinite), int(RESULTS.success)).astype(jnp.int32),
+                    fallback=jnp.zeros(n_steps, bool))
     traj = Trajectory(x=xs, v=vs, info=info)
     if not throw:
         return traj

@@ -78,6 +78,7 @@ class Solution(NamedTuple):
     iterations: Array  # int: iterations (global solves of the search direction)
     evaluations: Array  # int: local steps (objective evaluations), line-search trials included
     gnorm: Array  # final |g|
+    fallback: Array = False  # bool: a contact step's fast iteration fell short (see StepInfo.fallback)
 
 
 class NonlinearSolver:

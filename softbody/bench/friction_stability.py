@@ -19,9 +19,17 @@ and the default :class:`~softbody.splitting.ScaledDiagonal`), it measures
   hundreds of iterations below round-off), classified ``converged`` (force residual below
   ``1e-6 |M s / h^2|``), ``diverged`` (non-finite, or the residual at the end above 10x
   its start) or ``slow`` (neither), with its empirical contraction factor per iteration;
-  and the accelerated iteration as :class:`~softbody.contact.Contact` runs it
-  (Anderson mixing, its default history) from the unperturbed guess: iterations to the
-  same tolerance, or not converged within the cap.
+  and the accelerated splitting iteration as :class:`~softbody.contact.Contact` runs it
+  without its fast iteration (``Contact(active_set=None)``: Anderson mixing, its default
+  history) from the unperturbed guess: iterations to the same tolerance, or not converged
+  within the cap.
+
+And the contact solver's default, :class:`~softbody.contact.Contact` with its active-set
+iteration on the prefactored matrix (:mod:`softbody.active_set`), on the same first
+steps: iterations per step (the splitting's check included), whether it converged and
+whether it fell back to the splitting, and its wall time per step against the default
+splitting iteration's, timed in pairs (median of ``REPEATS`` runs each, one after the
+other, same process).
 
 Writes ``out/friction-stability.png``: one panel per splitting, stiffness against time
 step, each cell coloured by the plain iteration's worst outcome over the meshes and
@@ -33,6 +41,7 @@ iterations' outcomes, and the per-case table.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
@@ -57,6 +66,8 @@ YOUNG = (1e4, 1e5, 1e6, 1e7)
 STEPS = (1 / 1000, 1 / 300, 1 / 100, 1 / 30)
 #: relative force tolerance that counts as converged
 TOL = 1e-6
+#: timed runs of each step (the median is kept)
+REPEATS = 3
 #: random displacement added to the plain iteration's initial guess, relative to the body's
 #: size, so that every eigenmode is present from the start (as in a running simulation)
 PERTURBATION = 1e-4
@@ -123,6 +134,24 @@ def _iterations(model, n_plain: int):
     return jax.jit(run)
 
 
+def _timed_step(model):
+    """A jitted ``params -> StepInfo`` of the first step from rest, and its timer
+    ``(params) -> (info, median seconds over REPEATS runs)``."""
+    step = jax.jit(lambda params: solve_step(model, prepare(model, params), initial_state(model, params),
+                                             jnp.zeros(model.n_channels), None, static=False)[1])
+
+    def timed(params):
+        info = jax.block_until_ready(step(params))  # compiles on the first call
+        seconds = []
+        for _ in range(REPEATS):
+            start = time.perf_counter()
+            jax.block_until_ready(step(params))
+            seconds.append(time.perf_counter() - start)
+        return info, float(np.median(seconds))
+
+    return timed
+
+
 def _classify(residuals: np.ndarray, tol: float) -> tuple[str, float, int | None]:
     """``(status, contraction factor per iteration, iterations to tol or None)``.
 
@@ -155,7 +184,12 @@ def run(out: Path, quick: bool) -> dict:
             {1/1000, 1/30}, 300 plain iterations (else 1000).
 
     Returns:
-        ``{"max_spectral_radius": {splitting: max rho}, "min_gap_default": min(1 - rho),
+        ``{"iterations_median", "iterations_max"`` (the default contact solver's iterations
+        per step over all cases), ``"wall_ratio_vs_splitting": {"per_mesh": {mesh: ratio},
+        "all": ratio}`` (the splitting iteration's wall time over the default's, summed
+        over the cases), ``"active_set": {"converged", "fallback", "total",
+        "splitting_iterations_median", "splitting_iterations_max", "cases"}``,
+        ``"max_spectral_radius": {splitting: max rho}, "min_gap_default": min(1 - rho),
         "max_abs_row_sum_radius", "plain": {splitting: {status: count}},
         "accelerated": {splitting: {"converged": count, "total": count}},
         "design_claims": ..., "cases": [per-case dicts], "seconds"}``.
@@ -165,7 +199,7 @@ def run(out: Path, quick: bool) -> dict:
     youngs = (YOUNG[0], YOUNG[-1]) if quick else YOUNG
     steps = (STEPS[0], STEPS[-1]) if quick else STEPS
     n_plain = 300 if quick else 1000
-    cases = []
+    cases, active = [], []
     for mesh_name, mesh in meshes.items():
         mesh = _on_ground(mesh)
         extent = float(np.ptp(mesh.points, axis=0).max())
@@ -173,9 +207,25 @@ def run(out: Path, quick: bool) -> dict:
             PERTURBATION * extent * np.random.default_rng(0).standard_normal(mesh.points.shape)
         )
         for dt in steps:
+            options = Options(dt=dt, tol=TOL, max_iter=2000, solver=LocalGlobal())
+            scene = dict(options=options, obstacles=[Plane(mu_s=0.5, mu_k=0.4)])
+            fast, base = build(mesh, Material(E=youngs[0], nu=0.45), **scene)
+            splitting_only, _ = build(
+                mesh, Material(E=youngs[0], nu=0.45),
+                **{**scene, "options": dataclasses.replace(options, contact=Contact(active_set=None))})
+            timers = (_timed_step(fast), _timed_step(splitting_only))
+            for young in youngs:
+                params = eqx.tree_at(lambda p: p.E, base, jnp.full_like(base.E, young))
+                (info, seconds), (info_split, seconds_split) = (timer(params) for timer in timers)
+                active.append({
+                    "mesh": mesh_name, "n_vertices": mesh.n_vertices, "E": young, "dt": dt,
+                    "iterations": int(info.iterations), "converged": bool(info.converged),
+                    "fallback": bool(info.fallback), "seconds": seconds,
+                    "splitting_iterations": int(info_split.iterations), "splitting_seconds": seconds_split,
+                })
             for split_name, splitting in SPLITTINGS.items():
                 options = Options(dt=dt, tol=TOL, max_iter=2000, solver=LocalGlobal(),
-                                  contact=Contact(splitting=splitting))
+                                  contact=Contact(splitting=splitting, active_set=None))
                 model, params = build(
                     mesh,
                     Material(E=youngs[0], nu=0.45),
@@ -216,7 +266,7 @@ def run(out: Path, quick: bool) -> dict:
                         "residual": float(info.residual),
                     }
                     cases.append(case)
-    _plot(out / "friction-stability.png", cases, youngs, steps)
+    _plot(out / "friction-stability.png", cases, active, youngs, steps)
     summary = {name: {} for name in SPLITTINGS}
     accelerated = {name: {"converged": 0, "total": 0} for name in SPLITTINGS}
     for c in cases:
@@ -225,7 +275,24 @@ def run(out: Path, quick: bool) -> dict:
         accelerated[c["splitting"]]["converged"] += c["accelerated"]["converged"]
         accelerated[c["splitting"]]["total"] += 1
     defaults = [c for c in cases if c["splitting"] == "default"]
+    iterations = [c["iterations"] for c in active]
+    ratio = {name: sum(c["splitting_seconds"] for c in active if c["mesh"] == name)
+             / sum(c["seconds"] for c in active if c["mesh"] == name) for name in meshes}
     return {
+        "iterations_median": float(np.median(iterations)),
+        "iterations_max": int(max(iterations)),
+        "wall_ratio_vs_splitting": {
+            "per_mesh": ratio,
+            "all": sum(c["splitting_seconds"] for c in active) / sum(c["seconds"] for c in active),
+        },
+        "active_set": {
+            "converged": sum(c["converged"] for c in active),
+            "fallback": sum(c["fallback"] for c in active),
+            "total": len(active),
+            "splitting_iterations_median": float(np.median([c["splitting_iterations"] for c in active])),
+            "splitting_iterations_max": int(max(c["splitting_iterations"] for c in active)),
+            "cases": active,
+        },
         "max_spectral_radius": {
             name: max(c["spectral_radius"] for c in cases if c["splitting"] == name)
             for name in SPLITTINGS
@@ -245,7 +312,7 @@ _COLOURS = {"converged": "#4caf50", "slow": "#ffc107", "diverged": "#e53935"}
 _RANK = {"converged": 0, "slow": 1, "diverged": 2}
 
 
-def _plot(path: Path, cases, youngs, steps) -> None:
+def _plot(path: Path, cases, active, youngs, steps) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -253,7 +320,21 @@ def _plot(path: Path, cases, youngs, steps) -> None:
     from matplotlib.colors import to_rgb
     from matplotlib.patches import Patch
 
-    fig, axes = plt.subplots(1, len(SPLITTINGS), figsize=(4.2 * len(SPLITTINGS), 3.8), sharey=True)
+    fig, axes = plt.subplots(1, len(SPLITTINGS) + 1, figsize=(4.2 * (len(SPLITTINGS) + 1), 3.8), sharey=True)
+    image = np.ones((len(youngs), len(steps), 3))
+    for i, young in enumerate(youngs):
+        for j, dt in enumerate(steps):
+            here = [c for c in active if c["E"] == young and c["dt"] == dt]
+            worst = "converged" if all(c["converged"] and not c["fallback"] for c in here) else (
+                "slow" if all(c["converged"] for c in here) else "diverged")
+            image[i, j] = to_rgb(_COLOURS[worst])
+            its = [c["iterations"] for c in here]
+            split = [c["splitting_iterations"] for c in here]
+            axes[-1].text(j, i, f"{int(np.median(its))} / {max(its)}\nsplitting {int(np.median(split))} / {max(split)}",
+                          ha="center", va="center", fontsize=7)
+    axes[-1].imshow(image, origin="lower", aspect="auto")
+    axes[-1].set_xticks(range(len(steps)), [f"1/{round(1 / dt)}" for dt in steps])
+    axes[-1].set(title="default: active set, iterations median / max", xlabel="time step (s)")
     for ax, name in zip(axes, SPLITTINGS):
         image = np.ones((len(youngs), len(steps), 3))
         for i, young in enumerate(youngs):
