@@ -38,14 +38,14 @@ the surface: the step's equilibrium. With the projections held fixed and no cont
 active, the iteration matrix is ``T = P^{-1} (D - L) = (M + h^2 D)^{-1} h^2 (D - L)``, the
 matrix whose spectral radius :func:`softbody.splitting.splitting_spectral_radius` measures.
 
-**The fast iteration.** By default :class:`Contact` first runs
+**The fast iteration.** ``Contact(active_set=ActiveSet())`` first runs
 :class:`~softbody.active_set.ActiveSet`, an active-set iteration on the prefactored PD
 matrix whose fixed point is this map's, exactly; the map then checks its result in one
 evaluation and finishes the step where it stopped short (``StepInfo.fallback``). The
 implicit derivative is taken through the fast map then (see
-:mod:`softbody.active_set`). ``Contact(active_set=None)`` runs the splitting alone, as
-below; scenes with a skeleton always do (reduced coordinates have no vertex Delassus
-operator yet).
+:mod:`softbody.active_set`). It is not the default yet: see that module for what it
+costs and where it falls short. Scenes with a skeleton cannot use it (reduced
+coordinates have no vertex Delassus operator yet).
 
 Scheme, convergence criterion and costs of the splitting iteration:
 
@@ -167,8 +167,9 @@ def _contact_state(y, x_n, v_n, h, frame, free):
 
 @dataclass(frozen=True)
 class Contact:
-    """Implicit-Euler steps with contact and dry friction: the splitting iteration, run after
-    the active-set iteration on the prefactored matrix (:mod:`softbody.active_set`).
+    """Implicit-Euler steps with contact and dry friction by the splitting iteration
+    (optionally after an active-set iteration on the prefactored matrix,
+    :mod:`softbody.active_set`).
 
     The contact constraint's part of a composed step (:class:`~softbody.solvers.Step`),
     chosen by :func:`~softbody.model.build` for a scene with obstacles (set
@@ -184,10 +185,9 @@ class Contact:
             :class:`~softbody.splitting.ScaledDiagonal`, whose convergence is proved;
             :class:`~softbody.splitting.Diagonal` and :class:`~softbody.splitting.Naive`
             for studies).
-        active_set: the fast iteration run before the splitting
-            (:class:`~softbody.active_set.ActiveSet`), or ``None`` for the splitting
-            iteration alone. :func:`~softbody.model.build` drops it in scenes with a
-            skeleton.
+        active_set: ``None`` (default) for the splitting iteration alone, or the fast
+            iteration to run before it (:class:`~softbody.active_set.ActiveSet`; not in
+            scenes with a skeleton).
         history: Anderson history length (0: the plain splitting iteration).
         restart: Anderson restarts when the residual exceeds ``restart`` times the best
             one so far (> 1).
@@ -207,7 +207,7 @@ class Contact:
     """
 
     splitting: Splitting = field(default_factory=ScaledDiagonal)
-    active_set: ActiveSet | None = field(default_factory=ActiveSet)
+    active_set: ActiveSet | None = None
     history: int = 30
     restart: float = 10.0
     margin: float = 1e-6
@@ -243,7 +243,9 @@ class Contact:
             problem: the step (:class:`~softbody.solvers.StepProblem`).
             coordinates: the step's unknowns; solver: its contact-free iteration.
             x0, q0: ``(n, 3)`` start positions, ``(4, t)`` their rotations.
-            threshold: the force residual to reach; max_iter: the iteration cap.
+            threshold: the force residual to reach; max_iter: the iteration cap (of the
+                splitting iteration; the fast iteration before it has its own,
+                ``ActiveSet.max_iter``).
 
         Returns:
             :class:`~softbody.solvers.Solution` with the positions after the last contact
@@ -405,13 +407,16 @@ class Contact:
             iteration, cache = fast
             quick, cache = self.active_set.run(iteration, cache, weight, x0, q0, threshold, max_iter)
             # The splitting map checks the result in one evaluation (its fixed point is the
-            # same) and finishes the step where the fast iteration stopped short or a vertex
-            # outside its candidates touches.
-            check = self._iterate(fixed_point_map, weight, quick.x, quick.q, threshold,
-                                  jnp.maximum(max_iter - quick.iterations, 1))
+            # same) and finishes the step where a vertex outside the candidates touches. Where
+            # the fast iteration stopped short, the splitting starts afresh from the step's
+            # start (a stalled iterate can lie farther from the solution), with a budget of
+            # its own: the step's cap.
+            done = quick.gnorm <= threshold
+            check = self._iterate(fixed_point_map, weight, jnp.where(done, quick.x, x0),
+                                  jnp.where(done, quick.q, q0), threshold, max_iter)
             return check._replace(iterations=check.iterations + quick.iterations,
                                   evaluations=check.evaluations + quick.evaluations,
-                                  fallback=(quick.gnorm > threshold) | (check.iterations > 1)), cache
+                                  fallback=~done | (check.iterations > 1)), cache
 
         def free_step():  # the solver sees no obstacles: it is contact-free by definition
             sol = coordinates.minimize(solver, problem._replace(obstacles=()), x0, q0, threshold, max_iter)

@@ -203,8 +203,9 @@ def _compose(options: Options, rig: Rig | None, obstacles: tuple) -> Step:
                          "(softbody.fixed_point); use the default adjoint, Implicit() (or ImplicitForward())")
     contact = (options.contact or Contact()) if obstacles else None
     if contact is not None and rig is not None and contact.active_set is not None:
-        # Reduced coordinates have no vertex Delassus operator: their steps run the splitting.
-        contact = dataclasses.replace(contact, active_set=None)
+        raise SceneError("Contact(active_set=...) works in vertex coordinates; a scene with a skeleton has "
+                         "reduced coordinates, whose contact steps run the splitting alone: use "
+                         "Contact(active_set=None)")
     return Step(coordinates, solver, contact)
 
 

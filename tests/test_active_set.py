@@ -16,9 +16,11 @@ from softbody.active_set import ActiveSet
 from softbody.contact import Contact
 from softbody.material import Material
 from softbody.meshing.grid import grid_box
-from softbody.model import Options, build, initial_state, prepare
+from softbody.meshing import Region
+from softbody.model import Options, SceneError, build, initial_state, prepare
 from softbody.obstacles import Plane, Sphere
 from softbody.simulate import step
+from softbody.skeleton import Free, Link, Skeleton
 from softbody.solvers import LocalGlobal
 
 from incline import rot_y
@@ -70,8 +72,8 @@ def test_fast_iteration_reaches_the_splittings_fixed_point(name):
     obstacles, x, *young = SCENES[name]
     young = young[0] if young else 1e6
     cells = 3 if young >= 1e7 else 2
-    fast = _solve(obstacles, Contact(), young, x, cells)
-    plain = _solve(obstacles, Contact(active_set=None), young, x, cells)
+    fast = _solve(obstacles, Contact(active_set=ActiveSet()), young, x, cells)
+    plain = _solve(obstacles, Contact(), young, x, cells)
     (x_fast, info_fast, dx_fast, _), (x_plain, info_plain, dx_plain, start) = fast, plain
     assert bool(info_fast.converged) and bool(info_plain.converged)
     assert not bool(info_fast.fallback)
@@ -94,11 +96,20 @@ def test_a_touching_vertex_outside_the_candidates_falls_back_to_the_splitting():
     obstacles, x = _tilted(0.6)
     # 9 bottom vertices touch; 4 candidates cannot hold the box
     x_few, info, _, _ = _solve(obstacles, Contact(active_set=ActiveSet(max_contacts=4)), 1e6, x)
-    x_plain, _, _, _ = _solve(obstacles, Contact(active_set=None), 1e6, x)
+    x_plain, _, _, _ = _solve(obstacles, Contact(), 1e6, x)
     assert bool(info.converged) and bool(info.fallback)
     np.testing.assert_allclose(x_few, x_plain, atol=1e-9)
     normal = rot_y(0.6)[:, 2]
     assert (x_few @ normal).min() >= -1e-12  # on or above the plane
+
+
+def test_a_scene_with_a_skeleton_refuses_it(no_compiling):
+    mesh = grid_box((EDGE,) * 3, (2, 2, 2))
+    mesh = mesh.with_regions(**{"bone:body": Region(np.arange(mesh.n_vertices), np.arange(mesh.n_tets))})
+    skeleton = Skeleton([Link("body", "bone:body", None, Free())])
+    with pytest.raises(SceneError, match="active_set=None"):
+        build(mesh, Material(), skeleton=skeleton, obstacles=[Plane()],
+              options=Options(contact=Contact(active_set=ActiveSet())))
 
 
 def test_bad_settings_are_refused():

@@ -497,8 +497,7 @@ def test_full_iteration_diverges_with_naive_and_converges_with_default():
     mesh = grid_box((EDGE,) * 3, (2, 2, 2))
     residuals = {}
     for splitting in (Naive(), ScaledDiagonal()):
-        opts = Options(dt=DT, max_iter=400, solver=LocalGlobal(), contact=Contact(splitting=splitting, history=0,
-                                                                                    active_set=None))
+        opts = Options(dt=DT, max_iter=400, solver=LocalGlobal(), contact=Contact(splitting=splitting, history=0))
         model, params = build(mesh, Material(E=1e4, nu=0.3), options=opts, obstacles=[Plane()])
         prep = prepare(model, params)
         _, info = jax.jit(lambda prep, s: step(model, prep, s))(prep, initial_state(model, params))

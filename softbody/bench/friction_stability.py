@@ -19,17 +19,16 @@ and the default :class:`~softbody.splitting.ScaledDiagonal`), it measures
   hundreds of iterations below round-off), classified ``converged`` (force residual below
   ``1e-6 |M s / h^2|``), ``diverged`` (non-finite, or the residual at the end above 10x
   its start) or ``slow`` (neither), with its empirical contraction factor per iteration;
-  and the accelerated splitting iteration as :class:`~softbody.contact.Contact` runs it
-  without its fast iteration (``Contact(active_set=None)``: Anderson mixing, its default
-  history) from the unperturbed guess: iterations to the same tolerance, or not converged
-  within the cap.
+  and the accelerated iteration as :class:`~softbody.contact.Contact` runs it
+  (Anderson mixing, its default history) from the unperturbed guess: iterations to the
+  same tolerance, or not converged within the cap.
 
-And the contact solver's default, :class:`~softbody.contact.Contact` with its active-set
-iteration on the prefactored matrix (:mod:`softbody.active_set`), on the same first
-steps: iterations per step (the splitting's check included), whether it converged and
-whether it fell back to the splitting, and its wall time per step against the default
-splitting iteration's, timed in pairs (median of ``REPEATS`` runs each, one after the
-other, same process).
+And :class:`~softbody.contact.Contact` with its active-set iteration on the prefactored
+matrix (``Contact(active_set=ActiveSet())``, :mod:`softbody.active_set`) on the same
+first steps: iterations per step (the splitting's check included), whether it converged
+and whether it fell back to the splitting, and its wall time per step against the
+default splitting iteration's, timed in pairs (median of ``REPEATS`` runs each, one after
+the other, same process).
 
 Writes ``out/friction-stability.png``: one panel per splitting, stiffness against time
 step, each cell coloured by the plain iteration's worst outcome over the meshes and
@@ -50,6 +49,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from softbody.active_set import ActiveSet
 from softbody.contact import Contact
 from softbody.material import Material
 from softbody.meshing import TetMesh, examples
@@ -184,10 +184,10 @@ def run(out: Path, quick: bool) -> dict:
             {1/1000, 1/30}, 300 plain iterations (else 1000).
 
     Returns:
-        ``{"iterations_median", "iterations_max"`` (the default contact solver's iterations
+        ``{"iterations_median", "iterations_max"`` (the active-set iteration's iterations
         per step over all cases), ``"wall_ratio_vs_splitting": {"per_mesh": {mesh: ratio},
-        "all": ratio}`` (the splitting iteration's wall time over the default's, summed
-        over the cases), ``"active_set": {"converged", "fallback", "total",
+        "all": ratio}`` (the default splitting iteration's wall time over the active-set
+        iteration's, summed over the cases), ``"active_set": {"converged", "fallback", "total",
         "splitting_iterations_median", "splitting_iterations_max", "cases"}``,
         ``"max_spectral_radius": {splitting: max rho}, "min_gap_default": min(1 - rho),
         "max_abs_row_sum_radius", "plain": {splitting: {status: count}},
@@ -209,10 +209,10 @@ def run(out: Path, quick: bool) -> dict:
         for dt in steps:
             options = Options(dt=dt, tol=TOL, max_iter=2000, solver=LocalGlobal())
             scene = dict(options=options, obstacles=[Plane(mu_s=0.5, mu_k=0.4)])
-            fast, base = build(mesh, Material(E=youngs[0], nu=0.45), **scene)
-            splitting_only, _ = build(
+            splitting_only, base = build(mesh, Material(E=youngs[0], nu=0.45), **scene)
+            fast, _ = build(
                 mesh, Material(E=youngs[0], nu=0.45),
-                **{**scene, "options": dataclasses.replace(options, contact=Contact(active_set=None))})
+                **{**scene, "options": dataclasses.replace(options, contact=Contact(active_set=ActiveSet()))})
             timers = (_timed_step(fast), _timed_step(splitting_only))
             for young in youngs:
                 params = eqx.tree_at(lambda p: p.E, base, jnp.full_like(base.E, young))
@@ -225,7 +225,7 @@ def run(out: Path, quick: bool) -> dict:
                 })
             for split_name, splitting in SPLITTINGS.items():
                 options = Options(dt=dt, tol=TOL, max_iter=2000, solver=LocalGlobal(),
-                                  contact=Contact(splitting=splitting, active_set=None))
+                                  contact=Contact(splitting=splitting))
                 model, params = build(
                     mesh,
                     Material(E=youngs[0], nu=0.45),
@@ -334,7 +334,7 @@ def _plot(path: Path, cases, active, youngs, steps) -> None:
                           ha="center", va="center", fontsize=7)
     axes[-1].imshow(image, origin="lower", aspect="auto")
     axes[-1].set_xticks(range(len(steps)), [f"1/{round(1 / dt)}" for dt in steps])
-    axes[-1].set(title="default: active set, iterations median / max", xlabel="time step (s)")
+    axes[-1].set(title="active set: iterations median / max", xlabel="time step (s)")
     for ax, name in zip(axes, SPLITTINGS):
         image = np.ones((len(youngs), len(steps), 3))
         for i, young in enumerate(youngs):
