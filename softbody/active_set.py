@@ -40,11 +40,11 @@ solve is by L-BFGS.
 Where it stands (``softbody bench friction-stability``, the first step of six meshes
 resting on frictional ground, ``E`` 1e4-1e7 Pa, ``h`` 1/1000-1/30 s, 96 cases, 2-core
 CPU): all 96 converge, 2 through the fallback; 45 iterations per step at the median and
-742 at most, against 150 and 1431 for the splitting; 2.0x less wall time over all cases,
-3.2x on the 1419-vertex quadruped (5.5x at ``E`` = 1e7 Pa, ``h`` = 1/30 s: 164
-iterations against 1431), but 0.7-1.0x on the meshes under 350 vertices, where one
+750 at most, against 150 and 1431 for the splitting; 2.0x less wall time over all cases,
+3.25x on the 1419-vertex quadruped (5.4x at ``E`` = 1e7 Pa, ``h`` = 1/30 s: 164
+iterations against 1431), but 0.56-1.03x on the meshes under 350 vertices, where one
 iteration's dense work (``3m``-sized solves, a factorisation per state change) costs
-more than the local step it saves. It is not the default: most vertices under load slide
+more than the local steps it saves. It is not the default: most vertices under load slide
 by tiny amounts (the Poisson bulge), and with ``mu_s > mu_k`` a step has several
 equilibria; the two iterations can pick different ones, and in the crawler example
 (``examples/crawler.py``) a trajectory that took this iteration's reached a state where
