@@ -23,7 +23,7 @@ refactorised once per rollout.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import ClassVar, Mapping, Sequence
 
 import equinox as eqx
 import jax
@@ -83,6 +83,7 @@ class Muscle(ElementActuator):
             non-finite weights.
     """
 
+    mesh_indices: ClassVar[Mapping[str, str]] = {"tets": "tets"}
     tets: np.ndarray
     fibres: np.ndarray
     channel: np.ndarray

@@ -34,8 +34,9 @@ runs.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -43,7 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from softbody._interfaces import VertexActuator, VolumeActuator
-from softbody.model import SceneError
+from softbody._types import SceneError
 
 Array = jax.Array
 
@@ -140,6 +141,7 @@ class _Cavities:
             cavity whose faces do not form a closed, consistently oriented surface.
     """
 
+    mesh_indices: ClassVar[Mapping[str, str]] = {"faces": "vertices"}
     faces: np.ndarray
     cavity: np.ndarray
     channel_names: tuple[str, ...]
@@ -387,6 +389,7 @@ class PneumaticCells(VolumeActuator):
         SceneError: mismatched shapes, repeated tets, a channel with no tets, bad bounds.
     """
 
+    mesh_indices: ClassVar[Mapping[str, str]] = {"tets": "tets"}
     tets: np.ndarray
     channel: np.ndarray
     channel_names: tuple[str, ...]

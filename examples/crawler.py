@@ -37,6 +37,7 @@ from softbody.io import check_overwrite, write_metrics
 from softbody.material import Material
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, build
+from softbody.scene import SoftBody
 from softbody.obstacles import Plane
 
 LENGTH, WIDTH, HEIGHT = 0.12, 0.02, 0.02
@@ -54,9 +55,8 @@ def caterpillar():
     names = tuple(f"{layer}{s}" for s in range(N_SEGMENTS) for layer in ("top", "bottom"))
     muscle = Muscle(np.arange(mesh.n_tets), np.tile([1.0, 0.0, 0.0], (mesh.n_tets, 1)),
                            2 * segment + bottom, names, stiffness=3e5)
-    model, params = build(mesh, Material(E=1e5, nu=0.3, density=1000.0, alpha=1.0),
-                          options=Options(dt=DT, tol=1e-6, max_iter=1000), actuators=[muscle],
-                          obstacles=[Plane(mu_s=0.8, mu_k=0.6)])
+    model, params = build(SoftBody(mesh, Material(E=1e5, nu=0.3, density=1000.0, alpha=1.0), actuators=[muscle]),
+                          options=Options(dt=DT, tol=1e-6, max_iter=1000), obstacles=[Plane(mu_s=0.8, mu_k=0.6)])
     return mesh, model, params
 
 

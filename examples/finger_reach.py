@@ -34,6 +34,7 @@ from softbody.io import check_overwrite, write_metrics
 from softbody.material import Material
 from softbody.meshing import finger
 from softbody.model import Options, build
+from softbody.scene import SoftBody
 from softbody.simulate import solve_static
 
 LENGTH = 0.09
@@ -57,8 +58,9 @@ def main(argv=None):
 
     mesh = finger(length=LENGTH, size=0.008)
     chamber = CavityPressure.from_regions(mesh, ["cavity:chamber"], min_pressure=0.0, max_pressure=P_MAX)
-    model, params = build(mesh, Material(E=2e5, nu=0.4, density=1100.0, alpha=10.0), fixed="fixed",
-                          options=Options(dt=DT, tol=1e-6, max_iter=500), actuators=[chamber])
+    model, params = build(SoftBody(mesh, Material(E=2e5, nu=0.4, density=1100.0, alpha=10.0), fixed="fixed",
+                                   actuators=[chamber]),
+                          options=Options(dt=DT, tol=1e-6, max_iter=500))
     tip = mesh.regions["tip"].vertices
     weights = sc.centroid_weights(model, tip)
     x_hidden, _ = solve_static(model, params, activation=jnp.asarray([P_HIDDEN]))

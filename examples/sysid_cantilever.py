@@ -40,6 +40,7 @@ from softbody.io import check_overwrite, write_metrics
 from softbody.material import Material
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, build, initial_state
+from softbody.scene import SoftBody
 from softbody.simulate import rollout
 
 E_TRUE, ALPHA_TRUE = 1.0e6, 1.0
@@ -58,7 +59,7 @@ def main(argv=None):
 
     mesh = grid_box((0.32, 0.08, 0.08), (8, 2, 2))
     options = Options(dt=0.01, tol=1e-9, max_iter=3000)
-    model, truth = build(mesh, Material(E=E_TRUE, nu=0.3, density=1000.0, alpha=ALPHA_TRUE), fixed="fixed",
+    model, truth = build(SoftBody(mesh, Material(E=E_TRUE, nu=0.3, density=1000.0, alpha=ALPHA_TRUE), fixed="fixed"),
                          options=options)
     obs = sc.synthesize(model, truth, "zmax", N_STEPS, noise=NOISE, seed=0)
     print(f"{len(obs.markers)} markers, {N_STEPS} frames, noise {obs.noise * 1e3:.3f} mm "

@@ -4,16 +4,16 @@
 ``import softbody`` stays quick)::
 
     mesh = sb.meshing.examples.cantilever(size=0.01)
-    model, params = sb.build(mesh, sb.Material(E=1e5, nu=0.45), fixed="fixed",
+    model, params = sb.build(sb.SoftBody(mesh, sb.Material(E=1e5, nu=0.45), fixed="fixed"),
                              options=sb.Options(dt=0.01))
     traj = sb.rollout(model, params, sb.initial_state(model, params), n_steps=50)
 
-Scenes: :func:`build`, :func:`prepare`, :func:`initial_state`, :class:`Material`,
-:class:`Skeleton`, :class:`Fix` (vertices held in chosen components), :class:`Options`,
-:class:`Model`, :class:`Params`, :class:`State`, :class:`SceneError`. A scene owns its
-physics: ``build(mesh, material, skeleton=..., obstacles=[...], actuators=[...])``
-composes the step (the skeleton's reduced coordinates, contact where there are
-obstacles); the options choose only numerics.
+Scenes: :func:`build`, :class:`SoftBody`, :func:`prepare`, :func:`initial_state`,
+:class:`Material`, :class:`Skeleton`, :class:`Fix` (vertices held in chosen components),
+:class:`Options`, :class:`Model`, :class:`Params`, :class:`State`, :class:`SceneError`. A
+scene owns its physics: ``build([SoftBody(mesh, material, fixed=..., actuators=[...]), ...],
+skeleton=..., obstacles=[...])`` composes the step (the skeleton's reduced
+coordinates, contact where there are obstacles); the options choose only numerics.
 Stepping: :func:`rollout`, :func:`step`, :func:`solve_static`, :class:`Trajectory`,
 :class:`StepInfo`, :class:`SimulationError`. Strategies: :class:`LBFGS`,
 :class:`LocalGlobal` (nonlinear solvers, ``Options(solver=...)``), :class:`Contact` (the
@@ -55,7 +55,8 @@ __version__ = "0.1.0"
 #: The flat namespace: public name -> the module that defines it.
 _NAMES = {
     **dict.fromkeys(("Model", "Options", "Params", "Prepared", "SceneError", "State", "StepInfo"), "softbody._types"),
-    **dict.fromkeys(("Fix", "build", "initial_state", "prepare"), "softbody.model"),
+    **dict.fromkeys(("build", "initial_state", "prepare"), "softbody.model"),
+    **dict.fromkeys(("Fix", "SoftBody"), "softbody.scene"),
     "Material": "softbody.material",
     "RigidBody": "softbody.rigid",
     "Skeleton": "softbody.skeleton",

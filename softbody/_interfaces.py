@@ -19,7 +19,12 @@ Every actuator has named control channels, each with the range of values it acce
 
 from __future__ import annotations
 
+import dataclasses
+from typing import ClassVar, Mapping
+
 import numpy as np
+
+from softbody._types import SceneError
 
 
 class Actuator:
@@ -54,6 +59,26 @@ class Actuator:
             SceneError: the term needs what the scene lacks (e.g. joints without a skeleton).
         """
         return self
+
+    #: The attributes that hold indices into the body's mesh: name -> ``"vertices"`` or ``"tets"``.
+    mesh_indices: ClassVar[Mapping[str, str]] = {}
+
+    def placed(self, prefix: str, vertices: int, tets: int) -> "Actuator":
+        """The term of a body in a scene (:func:`softbody.scene.assemble`): the body's
+        vertices start at index ``vertices`` of the scene's vertex array and its tets at
+        ``tets``; its channels are named ``prefix + name``. The default shifts the
+        attributes named in :attr:`mesh_indices` and prefixes ``channel_names`` (a field).
+
+        Raises:
+            SceneError: the term acts on no body's mesh (joint actuators act on the
+                scene's skeleton: they go to ``build(actuators=...)``).
+        """
+        if not self.mesh_indices:
+            raise SceneError(f"{type(self).__name__} acts on the scene's skeleton, not on one body's mesh: give "
+                             "it to build(..., actuators=[...]), not to SoftBody(actuators=...)")
+        shift = {"vertices": vertices, "tets": tets}
+        changes = {key: np.asarray(getattr(self, key)) + shift[kind] for key, kind in self.mesh_indices.items()}
+        return dataclasses.replace(self, **changes, channel_names=tuple(prefix + c for c in self.channel_names))
 
     def init_params(self):
         """The term's differentiable design parameters (a pytree; ``()`` for none)."""

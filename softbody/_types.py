@@ -207,7 +207,7 @@ class Model:
     stiffness_damping: bool = False  # some material had beta > 0 at build time
     rig: object = None  # the skeleton bound to the mesh (softbody.skeleton.Rig), or None
     step: object = None  # the composed step (softbody.solvers.Step) that build resolved
-    motion: object = None  # t -> (R (3, 3), p (3,)): the fixed vertices' prescribed rigid motion, or None
+    bodies: tuple = ()  # softbody.scene.BodyPart per body: its vertex and tet ranges, held vertices, motion
 
     @property
     def n_vertices(self) -> int:
@@ -216,6 +216,22 @@ class Model:
     @property
     def n_tets(self) -> int:
         return self.mesh.n_tets
+
+    @property
+    def moving(self) -> bool:
+        """Whether some body's held vertices follow a prescribed motion."""
+        return any(part.motion is not None for part in self.bodies)
+
+    def body(self, name: str | None):
+        """The :class:`~softbody.scene.BodyPart` of the body called ``name``.
+
+        Raises:
+            SceneError: no such body (naming those there are).
+        """
+        for part in self.bodies:
+            if part.name == name:
+                return part
+        raise SceneError(f"no body {name!r} in this scene; it has {[p.name for p in self.bodies]}")
 
     @functools.cached_property
     def corner_incidence(self) -> np.ndarray:

@@ -240,6 +240,7 @@ def demo(out: Path, settings: Settings, *, force: bool = False, console=None) ->
     from softbody.io import Result, check_overwrite, write_metrics
     from softbody.material import Material
     from softbody.model import Options, build, initial_state
+    from softbody.scene import SoftBody
 
     console = console or Console()
     for name in OUTPUTS:
@@ -257,7 +258,7 @@ def demo(out: Path, settings: Settings, *, force: bool = False, console=None) ->
     muscles = Muscle.from_regions(mesh, channels, fibre=(1.0, 0.0, 0.0), stiffness=MUSCLE_STIFFNESS)
     # Steps of this scene take up to ~200 iterations at TOLERANCE; the cap leaves room.
     options = Options(dt=settings.dt, tol=TOLERANCE, max_iter=500)
-    model, params = build(mesh, material, fixed="fixed", options=options, actuators=[muscles])
+    model, params = build(SoftBody(mesh, material, fixed="fixed", actuators=[muscles]), options=options)
     state0 = initial_state(model, params)
     basis = control_basis(settings.steps, settings.knots)
     evaluate = make_objective(model, params, state0, basis, mesh.regions["tip"].vertices)

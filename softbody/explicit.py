@@ -112,7 +112,7 @@ def explicit_rollout(model: Model, params: Params, state0: State, controls=None,
     if model.obstacles:
         raise ValueError("explicit_rollout has no contact handling: build the scene without obstacles, "
                          "or use softbody.simulate.rollout")
-    if model.motion is not None:
+    if model.moving:
         raise ValueError("explicit_rollout does not move fixed vertices: use softbody.simulate.rollout for a "
                          "scene with a prescribed motion")
     if model.rig is not None:

@@ -1,4 +1,4 @@
-"""Scene compilation: ``TetMesh`` + materials + skeleton + obstacles + options -> static
+"""Scene compilation: bodies (:mod:`softbody.scene`) + skeleton + obstacles + options -> static
 ``Model`` + traced ``Params``.
 
 :func:`build` checks a scene and resolves its defaults once: it composes the step from the
@@ -14,7 +14,7 @@ types themselves live in :mod:`softbody._types`.
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable, Mapping, Sequence
+from typing import Sequence
 
 import jax
 import jax.numpy as jnp
@@ -22,138 +22,42 @@ import numpy as np
 
 from softbody import linsolve, rotation
 from softbody._interfaces import Actuator, ElementActuator
+from softbody.scene import SoftBody, assemble
 from softbody._types import Model, Options, Params, Prepared, SceneError, State
 from softbody.contact import Contact
 from softbody.elastic import deformation_gradient, local_matrices, rest_geometry
 from softbody.gradients import Adjoint, Implicit, Unrolled
-from softbody.material import Material, pd_weights
-from softbody.meshing import TetMesh
-from softbody.obstacles import check_motion
+from softbody.material import pd_weights
 from softbody.skeleton import Reduced, Rig, Skeleton, SkeletonError
 from softbody.solvers import LBFGS, NonlinearSolver, Step, Vertices
 
 Array = jax.Array
 
 
-AXES = "xyz"
-
-
-@dataclasses.dataclass(frozen=True)
-class Fix:
-    """Vertices held in chosen components of their position (a scene part for ``build(fixed=...)``).
-
-    ``Fix("clamp")`` holds every component (a clamp, what a bare selection means);
-    ``Fix(selection, axes="y")`` holds only ``y``: the vertices slide freely in ``x`` and
-    ``z``, as on a roller or a symmetry plane ``y = const``; holding ``z`` on every vertex of
-    a one-layer extrusion (``Fix(lambda p: np.ones(len(p), bool), axes="z")``) makes it
-    plane strain.
-
-    Arguments:
-        where: a region name, vertex indices, or a predicate ``points (n, 3) -> bool mask (n,)``.
-        axes: the held components, a non-empty subset of ``"xyz"`` (world axes).
-
-    Raises:
-        SceneError: axes that are not a non-empty subset of ``"xyz"``.
-    """
-
-    where: str | Sequence[int] | Callable
-    axes: str = AXES
-
-    def __post_init__(self):
-        if (not isinstance(self.axes, str) or not self.axes or len(set(self.axes)) != len(self.axes)
-                or not set(self.axes) <= set(AXES)):
-            raise SceneError(f"Fix.axes must name held components once each from 'xyz' (e.g. 'xyz', 'y', 'xz'), "
-                             f"got {self.axes!r}")
-
-
-def _selection(mesh: TetMesh, where) -> np.ndarray:
-    """The vertex indices a region name, index list or predicate selects (non-empty)."""
-    if isinstance(where, str):
-        if where not in mesh.regions:
-            raise SceneError(f"fixed region {where!r} is not in the mesh; it has {sorted(mesh.regions)}")
-        idx = mesh.regions[where].vertices
-    elif callable(where):
-        mask = np.asarray(where(mesh.points), bool)
-        if mask.shape != (mesh.n_vertices,):
-            raise SceneError(f"the fixed predicate must return a boolean mask of shape ({mesh.n_vertices},)")
-        idx = np.flatnonzero(mask)
-    else:
-        idx = np.unique(np.asarray(where, np.int64))
-        if idx.size and (idx.min() < 0 or idx.max() >= mesh.n_vertices):
-            raise SceneError("fixed vertex indices out of range")
-    if len(idx) == 0:
-        raise SceneError(f"the fixed selection {where if isinstance(where, str) else ''!s} holds no vertices; "
-                         "check the region or predicate, or pass fixed=None for a free body")
-    return np.asarray(idx, np.int64)
-
-
-def _fixed_mask(mesh: TetMesh, fixed) -> np.ndarray:
-    """``(n, 3)`` bool: the held components of every vertex (see :func:`build`'s ``fixed``)."""
-    held = np.zeros((mesh.n_vertices, 3), bool)
-    if fixed is None:
-        return held
-    several = isinstance(fixed, (list, tuple)) and any(isinstance(f, Fix) for f in fixed)
-    if several and not all(isinstance(f, Fix) for f in fixed):
-        raise SceneError("fixed is a list mixing Fix parts with other items: give one selection, one Fix, or a "
-                         "list of Fix parts (e.g. [Fix('clamp'), Fix('symmetry', axes='y')])")
-    for part in fixed if several else [fixed]:
-        part = part if isinstance(part, Fix) else Fix(part)
-        held[np.ix_(_selection(mesh, part.where), [AXES.index(a) for a in part.axes])] = True
-    return held
-
-
-def _materials(mesh: TetMesh, material) -> tuple[tuple[str, ...], list[Material], np.ndarray]:
-    if isinstance(material, Material):
-        return ("default",), [material], np.zeros(mesh.n_tets, np.int32)
-    if not isinstance(material, Mapping):
-        raise SceneError("material must be a Material or a mapping region name -> Material "
-                         "(key 'default' for tets in no named region)")
-    names, mats = ["default"], [material.get("default", Material())]
-    tet_material = np.zeros(mesh.n_tets, np.int32)
-    for name, mat in material.items():
-        if name == "default":
-            continue
-        if not isinstance(mat, Material):
-            raise SceneError(f"material[{name!r}] must be a Material, got {type(mat).__name__}")
-        reg = mesh.region(name) if name in mesh.regions else None
-        if reg is None:
-            raise SceneError(f"material region {name!r} is not in the mesh; it has {sorted(mesh.regions)}")
-        if reg.tets.size == 0:
-            raise SceneError(f"material region {name!r} has no tets (is it a surface region?)")
-        tet_material[reg.tets] = len(names)
-        names.append(name)
-        mats.append(mat)
-    return tuple(names), mats, tet_material
-
-
-def _check_motion(motion, fixed: np.ndarray) -> None:
-    """Refuse a clamp motion without fixed vertices, or one that is not ``t -> (R, p)``."""
-    if motion is None:
-        return
-    check_motion(motion, "build", SceneError)
-    if len(fixed) == 0:
-        raise SceneError("motion moves the fixed vertices, but the scene has none: pass fixed=... to build")
-
-
 def clamp(model: Model, x, x_rest, time):
-    """``x`` with the held components of the fixed vertices where the prescribed motion puts
-    them at ``time`` (the free components of a partly held vertex keep their values).
+    """``x`` with the held components of the moving bodies' fixed vertices where their
+    prescribed motions put them at ``time`` (the free components of a partly held vertex
+    keep their values).
 
     Arguments:
-        model: a scene built with ``motion``; x: ``(n, 3)`` positions; x_rest: ``(n, 3)``
-        rest positions (morph included); time: the time, s.
+        model: a scene with a body built with ``motion``; x: ``(n, 3)`` positions; x_rest:
+        ``(n, 3)`` rest positions (morph included); time: the time, s.
 
     Returns:
         ``(n, 3)`` positions.
     """
-    rot, shift = model.motion(jnp.asarray(time, jnp.float64))
-    idx = jnp.asarray(model.fixed)
-    target = jnp.asarray(x_rest)[idx] @ jnp.asarray(rot).T + jnp.asarray(shift)
-    held = jnp.asarray(model.free_mask[model.fixed] == 0)
-    return x.at[idx].set(jnp.where(held, target, x[idx]))
+    for part in model.bodies:
+        if part.motion is None:
+            continue
+        rot, shift = part.motion(jnp.asarray(time, jnp.float64))
+        idx = jnp.asarray(part.fixed)
+        target = jnp.asarray(x_rest)[idx] @ jnp.asarray(rot).T + jnp.asarray(shift)
+        held = jnp.asarray(model.free_mask[part.fixed] == 0)
+        x = x.at[idx].set(jnp.where(held, target, x[idx]))
+    return x
 
 
-def _rig(mesh: TetMesh, skeleton, free: np.ndarray) -> Rig | None:
+def _rig(mesh, skeleton, free: np.ndarray) -> Rig | None:
     """The skeleton bound to the mesh (``None`` without one), with no fixed bone vertex."""
     if skeleton is None:
         return None
@@ -210,54 +114,43 @@ def _compose(options: Options, rig: Rig | None, obstacles: tuple) -> Step:
 
 
 def build(
-    mesh: TetMesh,
-    material: Material | Mapping[str, Material] = Material(),
+    bodies: SoftBody | Sequence[SoftBody],
     *,
-    fixed: str | Sequence[int] | Callable | None = None,
     skeleton: Skeleton | None = None,
-    motion: Callable | None = None,
-    options: Options = Options(),
     actuators: Sequence = (),
     obstacles: Sequence = (),
+    options: Options = Options(),
 ) -> tuple[Model, Params]:
-    """Compile a scene.
+    """Compile a scene: its bodies and what acts between them.
 
     Arguments:
-        mesh: the tet mesh.
-        material: one :class:`Material`, or a mapping from region names to materials
-            (``"default"`` for the rest).
-        fixed: the held vertices: a region name, vertex indices or a predicate
-            ``points (n, 3) -> bool mask (n,)`` (clamped in all three components), a
-            :class:`Fix` (``Fix("symmetry", axes="y")`` holds only ``y``: a roller or a
-            symmetry plane), a list of :class:`Fix` parts, or ``None`` for a free body.
-            Partly held vertices are refused with a skeleton or obstacles.
+        bodies: one :class:`~softbody.scene.SoftBody` (a tet mesh with its materials, held
+            vertices, their motion and its actuators) or a list of them, each named (see
+            :mod:`softbody.scene`). They are concatenated into one vertex array, in order.
+            Partly held vertices are refused with a skeleton or obstacles; implicit steps
+            (:func:`~softbody.simulate.step`, rollouts, policies) follow a body's
+            ``motion``, the explicit and Newton reference integrators refuse it.
         skeleton: a :class:`~softbody.skeleton.Skeleton` over ``bone:`` regions of the
-            mesh, or ``None``; the scene then steps in its reduced coordinates
+            scene's mesh, or ``None``; the scene then steps in its reduced coordinates
             (``model.rig`` is the skeleton bound to the mesh).
-        motion: a prescribed rigid motion of the fixed vertices (a moving clamp):
-            ``t -> (R (3, 3), p (3,))``, JAX-traceable in the time ``t`` (s); at time ``t``
-            a fixed vertex with rest position ``X`` (morph included) sits at ``R X + p``
-            (in its held components).
-            ``None`` (default): the fixed vertices stay where they start. Implicit steps
-            (:func:`~softbody.simulate.step`, rollouts, policies) follow it; the explicit
-            and Newton reference integrators refuse it.
-        options: :class:`Options`.
-        actuators: actuator terms (see :mod:`softbody.actuators`).
+        actuators: the terms that act on the skeleton (``JointTorque``, ``JointServo``);
+            the terms on a body's elements belong to its ``SoftBody(actuators=...)``.
         obstacles: obstacles for contact and friction (see :mod:`softbody.obstacles`).
+        options: :class:`Options`.
 
     Returns:
         ``(model, params)``.
 
     Raises:
-        SceneError: unknown regions, an empty fixed selection, actuators with no tets, a
-            combination of scene and options that the step does not support, ...
+        SceneError: no bodies, repeated or missing body names, unknown regions, an empty
+            fixed selection, actuators with no tets or in the wrong place, a combination
+            of scene and options that the step does not support, ...
         SkeletonError: a skeleton that does not fit the mesh, or a fixed bone vertex.
         ValueError: bad material values (from :class:`Material`).
     """
-    if not isinstance(mesh, TetMesh):
-        raise SceneError(f"mesh must be a softbody.meshing.TetMesh, got {type(mesh).__name__}")
-    names, mats, tet_material = _materials(mesh, material)
-    held = _fixed_mask(mesh, fixed)
+    scene = assemble(bodies)
+    mesh, names, mats, tet_material, held = scene.mesh, scene.material_names, scene.materials, \
+        scene.tet_material, scene.held
     fixed_idx = np.flatnonzero(held.any(axis=1)).astype(np.int32)
     n = mesh.n_vertices
     free = ~held.any(axis=1)  # vertices with no held component
@@ -282,17 +175,17 @@ def build(
     if partial:
         _check_partial(skeleton, obstacles)
 
-    _check_motion(motion, fixed_idx)
     rig = _rig(mesh, skeleton, free)
-    terms = []
-    channels: list[str] = []
     for i, term in enumerate(actuators):
         if not isinstance(term, Actuator):
-            raise SceneError(f"actuators[{i}] is a {type(term).__name__}, not an actuator; give terms from "
-                             "softbody.actuators (Muscle, CavityPressure, CavityVolume, PneumaticCells, "
-                             "JointTorque, JointServo) or subclasses of softbody._interfaces.Actuator")
-        terms.append(term.bind(rig))
-        channels.extend(term.channel_names)
+            raise SceneError(f"actuators[{i}] is a {type(term).__name__}, not an actuator; give the skeleton's "
+                             "terms from softbody.actuators (JointTorque, JointServo) or subclasses of "
+                             "softbody._interfaces.Actuator")
+        if term.mesh_indices:
+            raise SceneError(f"actuators[{i}] ({type(term).__name__}) acts on a body's elements: give it to that "
+                             "body, SoftBody(mesh, material, actuators=[...])")
+    terms = [term.bind(rig) for term in (*scene.terms, *actuators)]
+    channels = [c for term in terms for c in term.channel_names]
     if len(set(channels)) != len(channels):
         raise SceneError(f"actuator channel names must be unique, got {channels}")
 
@@ -308,7 +201,7 @@ def build(
         fixed=fixed_idx, free_mask=(~held).astype(np.float64) if partial else free.astype(np.float64)[:, None],
         pattern=pattern, local_to_data=local_to_data, diag_to_data=diag_to_data,
         terms=tuple(terms), channel_names=tuple(channels), obstacles=tuple(obstacles),
-        stiffness_damping=any(m.beta > 0 for m in mats), rig=rig, step=step, motion=motion,
+        stiffness_damping=any(m.beta > 0 for m in mats), rig=rig, step=step, bodies=scene.parts,
     )
     params = Params(
         E=jnp.asarray([m.E for m in mats], jnp.float64),
@@ -341,7 +234,7 @@ def initial_state(model: Model, params: Params | None = None, x=None, v=None) ->
     """
     n = model.n_vertices
     rest = jnp.asarray(model.mesh.points) + (params.morph if params is not None else 0.0)
-    if x is None and model.motion is not None:
+    if x is None and model.moving:
         rest = clamp(model, rest, rest, 0.0)
     x = rest if x is None else jnp.asarray(x, jnp.float64)
     v = jnp.zeros((n, 3)) if v is None else jnp.asarray(v, jnp.float64)

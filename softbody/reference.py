@@ -335,8 +335,9 @@ def newton_step(model: Model, params: Params, state: State, activation=None, for
 
 
 def _check_step_inputs(model: Model, activation, force):
-    if model.motion is not None:
-        raise SceneError("the Newton reference keeps fixed vertices in place: build the scene without motion=")
+    if model.moving:
+        raise SceneError("the Newton reference keeps fixed vertices in place: build the scene's bodies without "
+                         "motion= (SoftBody(..., motion=None))")
     if activation is not None and jnp.shape(activation) != (model.n_channels,):
         raise SceneError(f"activation must have shape ({model.n_channels},), got {jnp.shape(activation)}")
     if force is not None and jnp.shape(force) != (model.n_vertices, 3):

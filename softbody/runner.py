@@ -96,6 +96,7 @@ def simulate(args: argparse.Namespace) -> tuple[object, dict]:
     from softbody.io import Result
     from softbody.material import Material
     from softbody.model import Options, build, initial_state
+    from softbody.scene import SoftBody
     from softbody.simulate import rollout
 
     if args.steps < 1:
@@ -106,7 +107,7 @@ def simulate(args: argparse.Namespace) -> tuple[object, dict]:
     fixed = fixed_region(mesh, args.fixed)
     material = Material(E=args.E, nu=args.nu, density=args.density, alpha=args.alpha)
     options = Options(dt=args.dt, tol=args.tol, gravity=tuple(args.gravity))
-    model, params = build(mesh, material, fixed=fixed, options=options)
+    model, params = build(SoftBody(mesh, material, fixed=fixed), options=options)
 
     tick = time.perf_counter()
     traj = rollout(model, params, initial_state(model, params), n_steps=args.steps)

@@ -233,7 +233,7 @@ def step(model: Model, prep: Prepared, state: State, activation=None, force=None
 def _step_start(model: Model, prep: Prepared, state: State) -> State:
     """The state a step starts from: with a prescribed motion, the fixed vertices moved to
     where the clamp is at the step's end."""
-    if model.motion is None:
+    if not model.moving:
         return state
     return eqx.tree_at(lambda s: s.x, state, clamp(model, state.x, prep.x_rest, state.t + model.options.dt))
 

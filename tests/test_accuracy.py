@@ -25,6 +25,7 @@ from softbody.meshing import MeshError, TetMesh
 from softbody.meshing.examples import cantilever
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, SceneError, build, initial_state, prepare
+from softbody.scene import SoftBody
 from softbody.simulate import rollout, solve_static
 
 # --------------------------------------------------------------------------------------
@@ -56,7 +57,7 @@ def gmsh_cantilever():
     bends it by ~2.4 mm (0.75% of its length), so the geometric nonlinearity of the
     corotated model is ~1e-4 of the deflection, well inside the 1% comparison."""
     mesh = cantilever(size=0.03)
-    model, params = build(mesh, Material(E=1e7, nu=0.3, density=1000.0), fixed="fixed",
+    model, params = build(SoftBody(mesh, Material(E=1e7, nu=0.3, density=1000.0), fixed="fixed"),
                           options=Options(tol=1e-10, max_iter=20000))
     return mesh, model, params
 
@@ -105,9 +106,8 @@ def test_newton_static_with_cavity_pressure():
 
     mesh = finger()
     chamber = CavityPressure.from_regions(mesh, ["cavity:chamber"])
-    model, params = build(mesh, Material(E=1e6, nu=0.45, density=1000.0), fixed="fixed",
-                          options=Options(gravity=(0.0, 0.0, 0.0), tol=1e-9, max_iter=20000),
-                          actuators=[chamber])
+    model, params = build(SoftBody(mesh, Material(E=1e6, nu=0.45, density=1000.0), fixed="fixed", actuators=[chamber]),
+                          options=Options(gravity=(0.0, 0.0, 0.0), tol=1e-9, max_iter=20000))
     pressure = jnp.asarray([2e4])
     x_pd, info = solve_static(model, params, activation=pressure)
     x_nt, iters = reference.newton_static(model, params, activation=pressure, tol=1e-9)
@@ -122,7 +122,7 @@ def test_newton_static_with_cavity_pressure():
 def _beam_deflection(k: int) -> tuple[float, int]:
     """Mean tip deflection of the 0.1 x 0.01 x 0.01 m beam on a (10k, 1, k) grid."""
     mesh = grid_box((0.1, 0.01, 0.01), (10 * k, 1, k), origin=(0.0, -0.005, -0.005))
-    model, params = build(mesh, Material(E=1e8, nu=0.0, density=1000.0), fixed="fixed",
+    model, params = build(SoftBody(mesh, Material(E=1e8, nu=0.0, density=1000.0), fixed="fixed"),
                           options=Options(tol=1e-6, max_iter=20000))
     x, info = solve_static(model, params)
     assert bool(info.converged)
@@ -203,8 +203,8 @@ _rollouts = {}
 def _pd_rollout(dt: float, tol: float):
     """PD (default L-BFGS) rollout of the dropped beam over DURATION, cached per (dt, tol)."""
     if (dt, tol) not in _rollouts:
-        model, params = build(BEAM, RUBBER, fixed="fixed", options=Options(dt=dt, tol=tol, max_iter=5000),
-                              actuators=[MUSCLE])
+        model, params = build(SoftBody(BEAM, RUBBER, fixed="fixed", actuators=[MUSCLE]),
+                              options=Options(dt=dt, tol=tol, max_iter=5000))
         traj = rollout(model, params, initial_state(model, params), n_steps=int(round(DURATION / dt)))
         _rollouts[dt, tol] = (model, params, traj)
     return _rollouts[dt, tol]
@@ -299,7 +299,7 @@ def test_implicit_euler_never_gains_energy():
     |g| <= tol |M s / h^2| + atol, which can add at most |g| |x_{n+1} - x_n| of energy."""
     material = Material(E=1e6, nu=0.3, density=1000.0)
     opts = Options(dt=1e-3, gravity=(0.0, 0.0, 0.0), tol=1e-10, max_iter=5000)
-    model, params = build(BEAM, material, fixed="fixed", options=opts)
+    model, params = build(SoftBody(BEAM, material, fixed="fixed"), options=opts)
     xi = BEAM.points[:, 0] / 0.1
     bent = BEAM.points + np.stack([np.zeros_like(xi), np.zeros_like(xi), 2e-3 * xi**2], axis=1)
     traj = rollout(model, params, initial_state(model, params, x=bent), n_steps=40)
@@ -474,13 +474,13 @@ def test_bad_time_step(dt):
 
 def test_empty_fixed_region():
     with pytest.raises(SceneError, match="holds no vertices"):
-        build(BEAM, fixed=lambda p: p[:, 0] < -1.0)
+        build(SoftBody(BEAM, fixed=lambda p: p[:, 0] < -1.0))
     with pytest.raises(SceneError, match="not in the mesh"):
-        build(BEAM, fixed="clamp")
+        build(SoftBody(BEAM, fixed="clamp"))
 
 
 def test_wrong_control_and_force_shapes(no_compiling):
-    model, params = build(BEAM, fixed="fixed")
+    model, params = build(SoftBody(BEAM, fixed="fixed"))
     state = initial_state(model, params)
     with pytest.raises(SceneError, match="controls must have shape"):
         rollout(model, params, state, controls=np.zeros((5, 2)))
@@ -499,10 +499,10 @@ def test_wrong_control_and_force_shapes(no_compiling):
 
 
 def test_reference_argument_errors(no_compiling):
-    free_body, params = build(BEAM)
+    free_body, params = build(SoftBody(BEAM))
     with pytest.raises(SceneError, match="needs fixed vertices"):
         reference.newton_static(free_body, params)
-    model, params = build(BEAM, fixed="fixed")
+    model, params = build(SoftBody(BEAM, fixed="fixed"))
     state = initial_state(model, params)
     with pytest.raises(ValueError, match="must be after the initial time"):
         reference.diffrax_rollout(model, params, state, 0.0, [0.0])
@@ -516,7 +516,7 @@ def test_a_step_that_turns_non_finite_raises_naming_the_step():
     """A finite but absurd load (1e300 N) overflows step 1: its objective is NaN, so the
     solver stops at once and returns the unchanged, finite guess. The rollout must name
     the step instead of passing that off as a solution (it once ignored the load)."""
-    model, params = build(BEAM, fixed="fixed")
+    model, params = build(SoftBody(BEAM, fixed="fixed"))
     state = initial_state(model, params)
     forces = np.zeros((3, model.n_vertices, 3))
     forces[1, :, 2] = 1e300
@@ -525,7 +525,7 @@ def test_a_step_that_turns_non_finite_raises_naming_the_step():
 
 
 def test_non_finite_controls_or_forces_are_refused_before_compiling(no_compiling):
-    model, params = build(BEAM, RUBBER, fixed="fixed", actuators=[MUSCLE])
+    model, params = build(SoftBody(BEAM, RUBBER, fixed="fixed", actuators=[MUSCLE]))
     state = initial_state(model, params)
     forces = np.zeros((3, model.n_vertices, 3))
     forces[2, 0, 1] = np.inf

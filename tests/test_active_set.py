@@ -18,6 +18,7 @@ from softbody.material import Material
 from softbody.meshing.grid import grid_box
 from softbody.meshing import Region
 from softbody.model import Options, SceneError, build, initial_state, prepare
+from softbody.scene import SoftBody
 from softbody.obstacles import Plane, Sphere
 from softbody.simulate import step
 from softbody.skeleton import Free, Link, Skeleton
@@ -35,7 +36,7 @@ def _solve(obstacles, contact, young=1e6, x=None, cells=2):
     ``(positions, info, jvp in E, start)``."""
     mesh = grid_box((EDGE,) * 3, (cells,) * 3, origin=(-EDGE / 2, -EDGE / 2, 0.0))
     opts = Options(dt=DT, tol=TOL, max_iter=3000, solver=LocalGlobal(), contact=contact)
-    model, params = build(mesh, Material(E=young, nu=0.3), options=opts, obstacles=obstacles)
+    model, params = build(SoftBody(mesh, Material(E=young, nu=0.3)), options=opts, obstacles=obstacles)
     x0 = jnp.asarray(mesh.points if x is None else x(mesh.points))
     state0 = initial_state(model, params, x=x0)
 
@@ -108,8 +109,8 @@ def test_a_scene_with_a_skeleton_refuses_it(no_compiling):
     mesh = mesh.with_regions(**{"bone:body": Region(np.arange(mesh.n_vertices), np.arange(mesh.n_tets))})
     skeleton = Skeleton([Link("body", "bone:body", None, Free())])
     with pytest.raises(SceneError, match="active_set=None"):
-        build(mesh, Material(), skeleton=skeleton, obstacles=[Plane()],
-              options=Options(contact=Contact(active_set=ActiveSet())))
+        build(SoftBody(mesh, Material()),
+              skeleton=skeleton, obstacles=[Plane()], options=Options(contact=Contact(active_set=ActiveSet())))
 
 
 def test_bad_settings_are_refused():

@@ -21,6 +21,7 @@ from softbody.material import Material, pd_weights
 from softbody.meshing import Region, examples
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, SceneError, build, initial_state, prepare
+from softbody.scene import SoftBody
 from softbody.simulate import RESULTS, SimulationError, rollout, solve_static
 
 E_WALL, NU = 1e5, 0.45  # a soft silicone (Pa, -)
@@ -78,8 +79,8 @@ def _linear_elastic(mesh, E, nu, forces, fixed) -> np.ndarray:
 def finger():
     mesh = examples.finger(size=0.004)  # ~1000 vertices, walls one or two tets thick
     term = CavityPressure.from_regions(mesh, ["cavity:chamber"])
-    model, params = build(mesh, Material(E=E_WALL, nu=NU), fixed="fixed", options=STATIC,
-                          actuators=(term,))
+    model, params = build(SoftBody(mesh, Material(E=E_WALL, nu=NU), fixed="fixed", actuators=(term,)),
+                          options=STATIC)
     return mesh, term, model, params
 
 
@@ -209,7 +210,8 @@ def test_pressure_maximum_under_volume_control(finger, sweep):
     static equilibrium exists above the peak), not a solver breakdown."""
     mesh = finger[0]
     term = CavityVolume.from_regions(mesh, ["cavity:chamber"], bulk_modulus=E_WALL)
-    model, params = build(mesh, Material(E=E_WALL, nu=NU), fixed="fixed", options=STATIC, actuators=(term,))
+    model, params = build(SoftBody(mesh, Material(E=E_WALL, nu=NU), fixed="fixed", actuators=(term,)),
+                          options=STATIC)
     prep = prepare(model, params, static=True)
     wall = np.flatnonzero(np.isin(mesh.tets, mesh.regions["cavity:chamber"].vertices).any(axis=1))
     x = jnp.asarray(mesh.points)
@@ -235,8 +237,9 @@ def test_rollout_past_the_pressure_maximum_raises(finger):
     invert: the rollout stops with an error naming the step; throw=False reports the
     code and the count there."""
     mesh, term, _, _ = finger
-    model, params = build(mesh, Material(E=E_WALL, nu=NU, density=1100.0, alpha=20.0), fixed="fixed",
-                          options=Options(dt=0.01, gravity=(0.0, 0.0, 0.0)), actuators=(term,))
+    model, params = build(SoftBody(mesh, Material(E=E_WALL, nu=NU, density=1100.0, alpha=20.0), fixed="fixed",
+                                   actuators=(term,)),
+                          options=Options(dt=0.01, gravity=(0.0, 0.0, 0.0)))
     with pytest.raises(SimulationError, match=r"step 0: more tets inverted \(det F <= 0\) than in the initial state"):
         rollout(model, params, initial_state(model, params), controls=jnp.full((3, 1), 2e4))
     traj = rollout(model, params, initial_state(model, params), controls=jnp.full((3, 1), 2e4), throw=False)
@@ -248,7 +251,8 @@ def test_volume_control_matches_pressure_control(finger):
     pressure-driven finger at that pressure has the same shape."""
     mesh, _, pressure_model, pressure_params = finger
     term = CavityVolume.from_regions(mesh, ["cavity:chamber"], bulk_modulus=E_WALL)
-    model, params = build(mesh, Material(E=E_WALL, nu=NU), fixed="fixed", options=STATIC, actuators=(term,))
+    model, params = build(SoftBody(mesh, Material(E=E_WALL, nu=NU), fixed="fixed", actuators=(term,)),
+                          options=STATIC)
     rest = jnp.asarray(mesh.points)
     growth = jnp.array([0.3])
     x, info = solve_static(model, params, activation=growth, x0=rest)
@@ -276,7 +280,8 @@ def strip():
     mesh = grid_box((0.1, 0.02, 0.02), (10, 2, 2), origin=(0.0, -0.01, -0.01))
     muscle = Muscle.from_polyline(mesh, [[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]], radius=0.02,
                                   stiffness=E_WALL, falloff="none", name="axial")
-    model, params = build(mesh, Material(E=E_WALL, nu=NU), fixed="fixed", options=STATIC, actuators=(muscle,))
+    model, params = build(SoftBody(mesh, Material(E=E_WALL, nu=NU), fixed="fixed", actuators=(muscle,)),
+                          options=STATIC)
     return mesh, muscle, model, params
 
 
@@ -334,7 +339,7 @@ def cells_box():
     """A box made only of cells, held at one corner vertex."""
     mesh = grid_box((0.02, 0.02, 0.02), (2, 2, 2))
     cells = PneumaticCells(np.arange(mesh.n_tets), np.zeros(mesh.n_tets), ("air",))
-    model, params = build(mesh, Material(E=E_WALL, nu=NU), fixed=[0], options=STATIC, actuators=(cells,))
+    model, params = build(SoftBody(mesh, Material(E=E_WALL, nu=NU), fixed=[0], actuators=(cells,)), options=STATIC)
     return mesh, cells, model, params
 
 
@@ -413,11 +418,12 @@ def test_activations_out_of_range_are_refused(strip, finger, no_compiling):
         solve_static(model, params, activation=jnp.array([-0.5]))
     fmesh, _, fmodel, fparams = finger
     bounded = CavityPressure.from_regions(fmesh, ["cavity:chamber"], max_pressure=5e4)
-    bmodel, bparams = build(fmesh, Material(E=E_WALL, nu=NU), fixed="fixed", options=STATIC, actuators=(bounded,))
+    bmodel, bparams = build(SoftBody(fmesh, Material(E=E_WALL, nu=NU), fixed="fixed", actuators=(bounded,)),
+                            options=STATIC)
     with pytest.raises(SceneError, match=r"= 60000 is outside channel 'cavity:chamber'.s range"):
         solve_static(bmodel, bparams, activation=jnp.array([6e4]))
     with pytest.raises(SceneError, match=r"actuators\[0\] is a dict, not an actuator"):
-        build(fmesh, Material(E=E_WALL, nu=NU), fixed="fixed", actuators=({"pressure": 1.0},))
+        build(SoftBody(fmesh, Material(E=E_WALL, nu=NU), fixed="fixed", actuators=({"pressure": 1.0},)))
 
 
 def test_pressure_clipped_to_bounds():
@@ -477,6 +483,7 @@ def test_cell_gradients():
     mesh = grid_box((0.04, 0.01, 0.01), (4, 1, 1))
     top = np.flatnonzero(mesh.points[mesh.tets].mean(axis=1)[:, 2] > 0.005)
     cells = PneumaticCells(top, np.zeros(len(top)), ("air",))
-    model, params = build(mesh, Material(E=E_WALL, nu=NU), fixed="fixed", options=STATIC, actuators=(cells,))
+    model, params = build(SoftBody(mesh, Material(E=E_WALL, nu=NU), fixed="fixed", actuators=(cells,)),
+                          options=STATIC)
     _check_gradients(model, params, jnp.array([1.5]), mesh.regions["tip"].vertices, 2,
                      lambda p: p.actuators[0].weights, eps_a=1e-3, eps_w=1e-3)

@@ -44,9 +44,10 @@ from softbody import meshing
 from softbody.material import Material
 from softbody.model import build, initial_state, prepare
 from softbody.objective import step_objective
+from softbody.scene import SoftBody
 
 mesh = meshing.examples.cantilever(length=0.1, width=0.02, height=0.02, size=0.02)
-model, params = build(mesh, Material(E=1e5, nu=0.45, density=1000), fixed="fixed")
+model, params = build(SoftBody(mesh, Material(E=1e5, nu=0.45, density=1000), fixed="fixed"))
 state = initial_state(model, params)
 prep = prepare(model, params)
 evaluate, _ = step_objective(model, prep, state.x, state.v, state.rot, jax.numpy.zeros(0), None, static=False)
@@ -162,9 +163,10 @@ import json, jax, softbody
 from softbody import cache, meshing
 from softbody.material import Material
 from softbody.model import Options, build, initial_state
+from softbody.scene import SoftBody
 from softbody.simulate import rollout
 mesh = meshing.examples.cantilever(length=0.1, width=0.02, height=0.02, size=0.02)
-model, params = build(mesh, Material(E=1e5, nu=0.45, density=1000), fixed="fixed", options=Options(dt=0.01))
+model, params = build(SoftBody(mesh, Material(E=1e5, nu=0.45, density=1000), fixed="fixed"), options=Options(dt=0.01))
 rollout(model, params, initial_state(model, params), n_steps=2)
 print(json.dumps([p.name for p in cache.entries()]))
 """

@@ -21,6 +21,7 @@ from softbody.material import Material
 from softbody.meshing import examples
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, SceneError, build, initial_state, prepare
+from softbody.scene import SoftBody
 from softbody.obstacles import (
     Box,
     Capsule,
@@ -238,7 +239,7 @@ def test_obstacle_parameters_are_typed_pytrees():
         "restitution": 0.0,
     }
     mesh = grid_box(cells=(1, 1, 1))
-    _, scene = build(mesh, Material(), obstacles=[Plane(mu_s=0.5, mu_k=0.4)])
+    _, scene = build(SoftBody(mesh, Material()), obstacles=[Plane(mu_s=0.5, mu_k=0.4)])
     scene = eqx.tree_at(lambda p: p.obstacles[0].mu_k, scene, jnp.asarray(0.2))
     assert float(scene.obstacles[0].mu_k) == 0.2 and isinstance(scene.obstacles[0], PlaneParams)
 
@@ -268,7 +269,7 @@ def test_contact_rejects_bad_settings_and_mismatched_parameters():
     wrong = ((Plane(), Sphere().init_params()),)
     with pytest.raises(ObstacleError, match="got a SphereParams"):
         Contact().run(problem._replace(obstacles=wrong), Vertices(), LBFGS(), x, None, 1e-6, 10)
-    model, params = build(grid_box(cells=(1, 1, 1)), Material(), fixed="xmin")
+    model, params = build(SoftBody(grid_box(cells=(1, 1, 1)), Material(), fixed="xmin"))
     traj = rollout(model, params, initial_state(model, params), n_steps=1)
     with pytest.raises(SceneError, match="contact_forces needs a scene with obstacles"):
         contact_forces(model, params, traj)
@@ -289,12 +290,9 @@ def cube_scene():
     Gravity enters as external forces ramped up over 0.1 s (see ``incline``).
     """
     mesh = grid_box((EDGE,) * 3, (4, 4, 4), origin=(-EDGE / 2, -EDGE / 2, 0.0))
-    model, params = build(
-        mesh,
-        Material(E=1e5, nu=0.3, beta=0.01),
-        options=Options(dt=DT, gravity=(0.0, 0.0, 0.0), tol=1e-8, max_iter=3000, solver=TOUCHING),
-        obstacles=[Plane(mu_s=MU_S, mu_k=MU_K)],
-    )
+    model, params = build(SoftBody(mesh, Material(E=1e5, nu=0.3, beta=0.01)),
+                          options=Options(dt=DT, gravity=(0.0, 0.0, 0.0), tol=1e-8, max_iter=3000,
+                                          solver=TOUCHING), obstacles=[Plane(mu_s=MU_S, mu_k=MU_K)])
     mass = np.asarray(prepare(model, params).mass)
     return mesh, model, params, mass
 
@@ -412,12 +410,8 @@ def ball_drop():
     (mass damping ``alpha``) lets it come to rest within the run.
     """
     mesh = examples.ball(radius=0.05, clearance=0.01, size=0.02)
-    model, params = build(
-        mesh,
-        Material(E=2e4, nu=0.3, alpha=5.0),
-        options=Options(dt=DT, tol=1e-8, max_iter=3000),
-        obstacles=[Plane(mu_s=0.6, mu_k=0.5)],
-    )
+    model, params = build(SoftBody(mesh, Material(E=2e4, nu=0.3, alpha=5.0)),
+                          options=Options(dt=DT, tol=1e-8, max_iter=3000), obstacles=[Plane(mu_s=0.6, mu_k=0.5)])
     traj = rollout(model, params, initial_state(model, params), n_steps=300)
     return mesh, traj
 
@@ -449,12 +443,8 @@ def test_moving_plate_carries_a_sticking_cube(cube_scene):
     plate = Moving(
         Plane(mu_s=MU_S, mu_k=MU_K), lambda t: (jnp.eye(3), jnp.array([speed * t, 0.0, 0.0]))
     )
-    model, params = build(
-        mesh,
-        Material(E=1e5, nu=0.3),
-        options=Options(dt=DT, tol=1e-8, max_iter=3000, solver=TOUCHING),
-        obstacles=[plate],
-    )
+    model, params = build(SoftBody(mesh, Material(E=1e5, nu=0.3)),
+                          options=Options(dt=DT, tol=1e-8, max_iter=3000, solver=TOUCHING), obstacles=[plate])
     traj = rollout(model, params, initial_state(model, params), n_steps=60)
     v = np.asarray(traj.v)[-10:, mesh.regions["zmin"].vertices]
     np.testing.assert_allclose(v[..., 0], speed, atol=1e-6)
@@ -472,9 +462,8 @@ def gmsh_cube():
 def test_default_splitting_converges_where_the_published_ones_fail(gmsh_cube):
     grid = grid_box((EDGE,) * 3, (3, 3, 3))
     for mesh, E, dt in [(gmsh_cube, 1e7, 1 / 30), (gmsh_cube, 1e4, 1e-3), (grid, 1e7, 1 / 30)]:
-        model, params = build(
-            mesh, Material(E=E, nu=0.45), options=Options(dt=dt), obstacles=[Plane()]
-        )
+        model, params = build(SoftBody(mesh, Material(E=E, nu=0.45)),
+                              options=Options(dt=dt), obstacles=[Plane()])
         prep = prepare(model, params)
         rho = splitting_spectral_radius(model, prep, ScaledDiagonal())
         mass, stiffness, h = _pd_split(model, prep)
@@ -482,13 +471,11 @@ def test_default_splitting_converges_where_the_published_ones_fail(gmsh_cube):
         assert splitting_spectral_radius(model, prep, Naive()) > 2
     # Jacobi (the published D = diag(L)) diverges on the unstructured mesh, stiff and soft alike
     # once the inertia is small; it converges on the structured grid, whose L is an M-matrix.
-    model, params = build(
-        gmsh_cube, Material(E=1e7, nu=0.45), options=Options(dt=1 / 30), obstacles=[Plane()]
-    )
+    model, params = build(SoftBody(gmsh_cube, Material(E=1e7, nu=0.45)),
+                          options=Options(dt=1 / 30), obstacles=[Plane()])
     assert splitting_spectral_radius(model, prepare(model, params), Diagonal()) > 1.02
-    model, params = build(
-        grid, Material(E=1e7, nu=0.45), options=Options(dt=1 / 30), obstacles=[Plane()]
-    )
+    model, params = build(SoftBody(grid, Material(E=1e7, nu=0.45)),
+                          options=Options(dt=1 / 30), obstacles=[Plane()])
     assert splitting_spectral_radius(model, prepare(model, params), Diagonal()) < 1
 
 
@@ -498,7 +485,7 @@ def test_full_iteration_diverges_with_naive_and_converges_with_default():
     residuals = {}
     for splitting in (Naive(), ScaledDiagonal()):
         opts = Options(dt=DT, max_iter=400, solver=LocalGlobal(), contact=Contact(splitting=splitting, history=0))
-        model, params = build(mesh, Material(E=1e4, nu=0.3), options=opts, obstacles=[Plane()])
+        model, params = build(SoftBody(mesh, Material(E=1e4, nu=0.3)), options=opts, obstacles=[Plane()])
         prep = prepare(model, params)
         _, info = jax.jit(lambda prep, s: step(model, prep, s))(prep, initial_state(model, params))
         residuals[type(splitting).__name__] = (
@@ -519,9 +506,8 @@ def test_gradient_through_sliding_contact_matches_finite_differences():
     """d(slide distance)/d(mu_k) and d/d(incline angle): the contact step's implicit derivative."""
     mesh = grid_box((EDGE,) * 3, (2, 2, 2), origin=(-EDGE / 2, -EDGE / 2, 0.0))
     opts = Options(dt=DT, tol=1e-11, max_iter=1500, solver=TOUCHING)
-    model, params = build(
-        mesh, Material(E=1e5, nu=0.3), options=opts, obstacles=[Plane(mu_s=MU_S, mu_k=MU_K)]
-    )
+    model, params = build(SoftBody(mesh, Material(E=1e5, nu=0.3)),
+                          options=opts, obstacles=[Plane(mu_s=MU_S, mu_k=MU_K)])
     n_steps = 10
 
     def slide(mu_k, theta):

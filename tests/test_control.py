@@ -20,6 +20,7 @@ from softbody.gradients import check_grad
 from softbody.material import Material
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, SceneError, build, initial_state
+from softbody.scene import SoftBody
 from softbody.obstacles import Plane
 from softbody.simulate import SimulationError, Trajectory, rollout
 from softbody import control as sc
@@ -35,8 +36,9 @@ def scene():
     centre_z = mesh.points[mesh.tets].mean(axis=1)[:, 2]
     muscle = Muscle(np.arange(mesh.n_tets), np.tile([1.0, 0.0, 0.0], (mesh.n_tets, 1)),
                     np.where(centre_z > 0.01, 0, 1), ("top", "bottom"), stiffness=1e5)
-    model, params = build(mesh, Material(E=1e5, nu=0.3, density=1000.0, alpha=2.0), fixed="fixed",
-                          options=Options(dt=0.01, tol=1e-9, max_iter=400), actuators=[muscle])
+    model, params = build(SoftBody(mesh, Material(E=1e5, nu=0.3, density=1000.0, alpha=2.0), fixed="fixed",
+                                   actuators=[muscle]),
+                          options=Options(dt=0.01, tol=1e-9, max_iter=400))
     return model, params
 
 
@@ -371,9 +373,8 @@ def test_muscle_gait_gradient_through_contact_matches_central_differences():
     centre_z = mesh.points[mesh.tets].mean(axis=1)[:, 2]
     muscle = Muscle(np.arange(mesh.n_tets), np.tile([1.0, 0.0, 0.0], (mesh.n_tets, 1)),
                     np.where(centre_z > 0.01, 0, 1), ("top", "bottom"), stiffness=1e5)
-    model, params = build(mesh, Material(E=1e5, nu=0.3, density=1000.0, alpha=2.0),
-                          options=Options(dt=0.01, tol=1e-11, max_iter=2000), actuators=[muscle],
-                          obstacles=[Plane(mu_s=0.8, mu_k=0.6)])
+    model, params = build(SoftBody(mesh, Material(E=1e5, nu=0.3, density=1000.0, alpha=2.0), actuators=[muscle]),
+                          options=Options(dt=0.01, tol=1e-11, max_iter=2000), obstacles=[Plane(mu_s=0.8, mu_k=0.6)])
     loss = sc.ForwardDistance(model)
     n_steps = 4
     problem = sc.ControlProblem(model, params, loss, sc.ControlGrid(n_steps, 2))

@@ -10,6 +10,7 @@ from softbody.gradients import Implicit, ImplicitForward, Unrolled, central_diff
 from softbody.material import Material
 from softbody.meshing import Region, examples
 from softbody.model import Options, State, build, initial_state
+from softbody.scene import SoftBody
 from softbody.simulate import rollout
 
 T = 4
@@ -26,9 +27,9 @@ def _mesh():
 def _problem(adjoint, mesh=None):
     mesh = _mesh() if mesh is None else mesh
     muscle = Muscle.from_regions(mesh, ["muscle:top"], stiffness=2e4)
-    model, params = build(
-        mesh, Material(E=1e5, nu=0.3, density=1000, alpha=0.5, beta=0.01), fixed="fixed",
-        options=Options(dt=0.01, tol=1e-12, atol=0.0, max_iter=300, adjoint=adjoint), actuators=[muscle])
+    model, params = build(SoftBody(mesh, Material(E=1e5, nu=0.3, density=1000, alpha=0.5, beta=0.01), fixed="fixed",
+                                   actuators=[muscle]),
+                          options=Options(dt=0.01, tol=1e-12, atol=0.0, max_iter=300, adjoint=adjoint))
     state0 = initial_state(model, params)
     rng = np.random.default_rng(0)
     w = jnp.asarray(rng.standard_normal((mesh.n_vertices, 3)))
@@ -168,7 +169,7 @@ def _tiny(adjoint, **material):
     from softbody.meshing.grid import grid_box
 
     mesh = grid_box((0.06, 0.02, 0.02), (3, 1, 1))
-    model, params = build(mesh, Material(**{"E": 1e5, "nu": 0.3, **material}), fixed="fixed",
+    model, params = build(SoftBody(mesh, Material(**{"E": 1e5, "nu": 0.3, **material}), fixed="fixed"),
                           options=Options(dt=0.01, tol=1e-12, atol=0.0, adjoint=adjoint))
     return model, params, initial_state(model, params)
 
@@ -209,7 +210,7 @@ def test_gradient_finite_at_rest(adjoint):
     from softbody.meshing.grid import grid_box
 
     mesh = grid_box((0.06, 0.02, 0.02), (3, 1, 1))
-    model, params = build(mesh, Material(E=1e5, nu=0.3), fixed="fixed",
+    model, params = build(SoftBody(mesh, Material(E=1e5, nu=0.3), fixed="fixed"),
                           options=Options(dt=0.01, gravity=(0.0, 0.0, 0.0), tol=1e-12, adjoint=adjoint))
     s0 = initial_state(model, params)
 
@@ -260,7 +261,7 @@ def test_stress_derivative_product_is_the_hessian_vector_product(monkeypatch, us
     else:
         monkeypatch.setattr(native, "available", lambda: False)
     mesh = _mesh()
-    model, _ = build(mesh, Material(E=1e5, nu=0.3, density=1000), fixed="fixed")
+    model, _ = build(SoftBody(mesh, Material(E=1e5, nu=0.3, density=1000), fixed="fixed"))
     dminv, _ = rest_geometry(model, jnp.zeros_like(jnp.asarray(mesh.points)))
     rng = np.random.default_rng(1)
     k = rng.standard_normal((9, 9, mesh.n_tets))
@@ -315,7 +316,7 @@ def test_forward_implicit_in_a_skeleton_chart_agrees_with_reverse():
     tip = jnp.asarray(np.flatnonzero(mesh.points[:, 0] > 0.2 - 1e-9))
 
     def make(adjoint):
-        model, params = build(mesh, Material(E=1e4, nu=0.3, density=1000.0), fixed="xmin",
+        model, params = build(SoftBody(mesh, Material(E=1e4, nu=0.3, density=1000.0), fixed="xmin"),
                               skeleton=skeleton, actuators=[JointTorque(["upper"])],
                               options=Options(dt=0.01, tol=1e-12, max_iter=300, adjoint=adjoint))
         s0 = initial_state(model, params)

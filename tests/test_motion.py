@@ -12,6 +12,7 @@ from softbody.gradients import check_grad
 from softbody.material import Material
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, SceneError, build, initial_state
+from softbody.scene import SoftBody
 from softbody.simulate import rollout
 
 BAR = grid_box((0.1, 0.02, 0.02), (5, 1, 1))
@@ -27,7 +28,7 @@ def test_a_clamp_and_a_bar_moving_together_translate_rigidly():
     """Clamp and bar start with the same velocity, no gravity: implicit Euler is Galilean
     invariant, so the bar translates rigidly (elastic forces stay zero), to the step
     tolerance, and the clamped vertices sit exactly on the clamp."""
-    model, params = build(BAR, Material(E=1e5, nu=0.3), fixed="xmin", motion=translating,
+    model, params = build(SoftBody(BAR, Material(E=1e5, nu=0.3), fixed="xmin", motion=translating),
                           options=Options(dt=DT, gravity=(0.0, 0.0, 0.0), tol=1e-10))
     state0 = initial_state(model, params, v=jnp.broadcast_to(U, (BAR.n_vertices, 3)))
     traj = rollout(model, params, state0, n_steps=20)
@@ -43,8 +44,8 @@ def test_a_clamp_drags_a_bar_from_rest_to_its_own_velocity():
     """The clamp starts moving along the bar's axis at 5 cm/s with the bar at rest; the bar
     is pushed along, and stiffness damping (which does not resist rigid motion) lets its
     vibration settle: after 0.5 s every vertex moves with the clamp (within 1%)."""
-    model, params = build(BAR, Material(E=1e5, nu=0.3, beta=0.01), fixed="xmin",
-                          motion=lambda t: (jnp.eye(3), jnp.array([0.05, 0.0, 0.0]) * t),
+    model, params = build(SoftBody(BAR, Material(E=1e5, nu=0.3, beta=0.01), fixed="xmin",
+                                   motion=lambda t: (jnp.eye(3), jnp.array([0.05, 0.0, 0.0]) * t)),
                           options=Options(dt=DT, gravity=(0.0, 0.0, 0.0)))
     traj = rollout(model, params, initial_state(model, params), n_steps=50)
     v = np.asarray(traj.v[-1])
@@ -63,7 +64,7 @@ def test_gradient_through_clamped_steps_matches_central_differences():
         c, s = jnp.cos(0.5 * t), jnp.sin(0.5 * t)
         return jnp.array([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]]), jnp.array([0.0, 0.0, 0.1]) * t
 
-    model, params = build(BAR, Material(E=1e4, nu=0.3), fixed="xmin", motion=motion,
+    model, params = build(SoftBody(BAR, Material(E=1e4, nu=0.3), fixed="xmin", motion=motion),
                           options=Options(dt=DT, tol=1e-12, max_iter=500))
     tip = jnp.asarray(np.flatnonzero(BAR.points[:, 0] > 0.1 - 1e-9))
     state0 = initial_state(model, params)
@@ -81,16 +82,16 @@ def test_gradient_through_clamped_steps_matches_central_differences():
 
 
 def test_bad_motions_are_refused_before_compiling(no_compiling):
-    with pytest.raises(SceneError, match="the scene has none: pass fixed="):
-        build(BAR, Material(), motion=translating)
+    with pytest.raises(SceneError, match="has none: give the body fixed="):
+        build(SoftBody(BAR, Material(), motion=translating))
     with pytest.raises(SceneError, match="motion must be a function"):
-        build(BAR, Material(), fixed="xmin", motion=(np.eye(3), np.zeros(3)))
+        build(SoftBody(BAR, Material(), fixed="xmin", motion=(np.eye(3), np.zeros(3))))
     with pytest.raises(SceneError, match=r"motion\(0.0\) must return a finite rotation"):
-        build(BAR, Material(), fixed="xmin", motion=lambda t: (jnp.eye(3), jnp.zeros(2)))
+        build(SoftBody(BAR, Material(), fixed="xmin", motion=lambda t: (jnp.eye(3), jnp.zeros(2))))
     with pytest.raises(SceneError, match="is not a rotation"):
-        build(BAR, Material(), fixed="xmin", motion=lambda t: (2 * jnp.eye(3), jnp.zeros(3)))
+        build(SoftBody(BAR, Material(), fixed="xmin", motion=lambda t: (2 * jnp.eye(3), jnp.zeros(3))))
     with pytest.raises(SceneError, match=r"motion\(0.0\) failed"):
-        build(BAR, Material(), fixed="xmin", motion=lambda t: (jnp.eye(3),))
-    model, params = build(BAR, Material(), fixed="xmin", motion=translating)
+        build(SoftBody(BAR, Material(), fixed="xmin", motion=lambda t: (jnp.eye(3),)))
+    model, params = build(SoftBody(BAR, Material(), fixed="xmin", motion=translating))
     with pytest.raises(ValueError, match="explicit_rollout does not move fixed vertices"):
         explicit_rollout(model, params, initial_state(model, params), n_steps=2)

@@ -173,6 +173,7 @@ def test_no_contact_or_skeleton_work_without_obstacles_or_bones():
     skeleton adds its reduced solve; both make the step's program larger."""
     from softbody.material import Material
     from softbody.model import Options, build
+    from softbody.scene import SoftBody
     from softbody.obstacles import Plane
     from softbody.skeleton import Fixed, Link, Skeleton
     from softbody.solvers import LBFGS
@@ -181,15 +182,16 @@ def test_no_contact_or_skeleton_work_without_obstacles_or_bones():
 
     mesh = SCENE.mesh(2)
     material = Material(E=1e6, nu=0.3)
-    plain, p_plain = build(mesh, material, fixed="fixed")
+    plain, p_plain = build(SoftBody(mesh, material, fixed="fixed"))
     assert type(plain.step.solver) is LBFGS and plain.step.contact is None and plain.rig is None
-    explicit_lbfgs, p_lbfgs = build(mesh, material, fixed="fixed", options=Options(solver=LBFGS()))
-    contact, p_contact = build(mesh, material, fixed="fixed", obstacles=[Plane(point=(0.0, 0.0, -10.0))])
+    explicit_lbfgs, p_lbfgs = build(SoftBody(mesh, material, fixed="fixed"), options=Options(solver=LBFGS()))
+    contact, p_contact = build(SoftBody(mesh, material, fixed="fixed"), obstacles=[Plane(point=(0.0, 0.0, -10.0))])
     assert type(contact.step.contact).__name__ == "Contact"
     inside = mesh.points[:, 0] >= 0.08 - 1e-9
     bones = mesh.with_regions(**{"bone:b": Region(np.flatnonzero(inside),
                                                   np.flatnonzero(inside[mesh.tets].all(axis=1)))})
-    skeleton, p_skeleton = build(bones, material, fixed="fixed", skeleton=Skeleton([Link("b", "bone:b", None, Fixed())]))
+    skeleton, p_skeleton = build(SoftBody(bones, material, fixed="fixed"),
+                                 skeleton=Skeleton([Link("b", "bone:b", None, Fixed())]))
     sizes = {name: _step_size(m, p) for name, (m, p) in {
         "default": (plain, p_plain), "L-BFGS": (explicit_lbfgs, p_lbfgs), "contact": (contact, p_contact),
         "skeleton": (skeleton, p_skeleton)}.items()}

@@ -13,6 +13,7 @@ from softbody.explicit import explicit_rollout
 from softbody.material import Material
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, build, initial_state
+from softbody.scene import SoftBody
 from softbody.simulate import RESULTS, SimulationError, check_trajectory, rollout, solve_static
 
 #: 0.1 x 0.02 x 0.02 m beam on 5 x 1 x 1 cells (24 vertices, 30 tets), clamped at x = 0.
@@ -36,7 +37,7 @@ def _traced_raises(call, message: str):
 
 @pytest.fixture(scope="module")
 def beam():
-    model, params = build(BEAM, RUBBER, fixed="fixed")
+    model, params = build(SoftBody(BEAM, RUBBER, fixed="fixed"))
     state = initial_state(model, params)
     # One compiled program for every load below: the forces are its argument.
     traced = jax.jit(lambda forces: rollout(model, params, state, forces=forces).x)
@@ -65,7 +66,7 @@ def test_a_normal_rollout_succeeds_at_every_step(beam):
 
 
 def test_the_iteration_cap_is_reported_and_raised_the_same_traced_or_not():
-    model, params = build(BEAM, RUBBER, fixed="fixed", options=CAPPED)
+    model, params = build(SoftBody(BEAM, RUBBER, fixed="fixed"), options=CAPPED)
     state = initial_state(model, params)
     traj = rollout(model, params, state, n_steps=3, throw=False)
     np.testing.assert_array_equal(traj.info.result, [RESULTS.max_iterations] * 3)
@@ -129,7 +130,7 @@ def test_a_matrix_that_is_not_positive_definite_fails_the_first_step(beam):
 
 
 def test_static_solve_at_its_cap_is_reported_and_raised_the_same_traced_or_not():
-    model, params = build(BEAM, RUBBER, fixed="fixed", options=CAPPED)
+    model, params = build(SoftBody(BEAM, RUBBER, fixed="fixed"), options=CAPPED)
     x, info = solve_static(model, params, throw=False)
     assert int(info.result) == RESULTS.max_iterations and not bool(info.converged)
     message = _message(lambda: solve_static(model, params))
@@ -138,7 +139,7 @@ def test_static_solve_at_its_cap_is_reported_and_raised_the_same_traced_or_not()
 
 
 def test_explicit_rollout_past_its_stability_limit_reports_nonfinite():
-    model, params = build(BEAM, Material(E=1e7, nu=0.3, density=1000.0), fixed="fixed",
+    model, params = build(SoftBody(BEAM, Material(E=1e7, nu=0.3, density=1000.0), fixed="fixed"),
                           options=Options(dt=1e-3))
     state = initial_state(model, params)
     traj = explicit_rollout(model, params, state, n_steps=200, throw=False)

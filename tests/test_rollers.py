@@ -16,7 +16,8 @@ from softbody.gradients import check_grad
 from softbody.material import Material
 from softbody.meshing import TetMesh
 from softbody.meshing.grid import grid_box
-from softbody.model import Fix, Options, SceneError, build, initial_state
+from softbody.model import Options, SceneError, build, initial_state
+from softbody.scene import Fix, SoftBody
 from softbody.obstacles import Plane
 from softbody.reference import diffrax_rollout, newton_static
 from softbody.skeleton import Link, Skeleton
@@ -54,8 +55,8 @@ FULL, SOURCE = _mirror(HALF)
 
 @pytest.fixture(scope="module")
 def beams():
-    half = build(HALF, MATERIAL, fixed=[Fix(_clamp), Fix(_on_plane, axes="y")], options=OPTIONS)
-    full = build(FULL, MATERIAL, fixed=_clamp, options=OPTIONS)
+    half = build(SoftBody(HALF, MATERIAL, fixed=[Fix(_clamp), Fix(_on_plane, axes="y")]), options=OPTIONS)
+    full = build(SoftBody(FULL, MATERIAL, fixed=_clamp), options=OPTIONS)
     return half, full
 
 
@@ -82,7 +83,7 @@ def test_the_symmetry_plane_makes_half_a_beam_the_full_beam_statically(beams):
     assert np.abs(u_half[_on_plane(HALF.points), 1]).max() == 0.0
     assert gap <= 1e-6 * scale
 
-    loose, lp = build(HALF, MATERIAL, fixed=_clamp, options=OPTIONS)
+    loose, lp = build(SoftBody(HALF, MATERIAL, fixed=_clamp), options=OPTIONS)
     x_loose, _ = solve_static(loose, lp)
     assert np.abs(np.asarray(x_loose) - _half_of(x_full)).max() > 1e-3 * scale
 
@@ -149,8 +150,8 @@ def test_held_components_follow_a_moving_clamp():
     """A roller plate that rises: vertices held in z only go up with it and stay free in x
     and y (their rest x, y keep whatever the step gives them)."""
     bar = grid_box((0.1, 0.02, 0.02), (4, 1, 1))
-    model, params = build(bar, Material(E=1e5, nu=0.3), fixed=Fix("zmin", axes="z"),
-                          motion=lambda t: (jnp.eye(3), jnp.array([0.0, 0.0, 0.1]) * t),
+    model, params = build(SoftBody(bar, Material(E=1e5, nu=0.3), fixed=Fix("zmin", axes="z"),
+                                   motion=lambda t: (jnp.eye(3), jnp.array([0.0, 0.0, 0.1]) * t)),
                           options=Options(dt=0.01, gravity=(0.0, 0.0, 0.0), tol=1e-10))
     traj = rollout(model, params, initial_state(model, params), n_steps=5)
     zmin = bar.regions["zmin"].vertices
@@ -167,15 +168,15 @@ def test_partly_held_vertices_are_refused_where_the_step_cannot_hold_them(no_com
     with pytest.raises(SceneError, match="once each"):
         Fix("xmin", axes="")
     with pytest.raises(SceneError, match="mixing Fix"):
-        build(HALF, MATERIAL, fixed=[Fix("xmin"), "ymin"])
+        build(SoftBody(HALF, MATERIAL, fixed=[Fix("xmin"), "ymin"]))
     with pytest.raises(SceneError, match="contact holds vertices in all three"):
-        build(HALF, MATERIAL, fixed=Fix("ymin", axes="y"), obstacles=[Plane(point=(0, 0, -0.01))])
+        build(SoftBody(HALF, MATERIAL, fixed=Fix("ymin", axes="y")), obstacles=[Plane(point=(0, 0, -0.01))])
     bone = grid_box((0.1, 0.02, 0.02), (4, 1, 1))
     with pytest.raises(SceneError, match="skeleton holds vertices in all three"):
-        build(bone, MATERIAL, fixed=Fix("ymin", axes="y"), skeleton=Skeleton([Link("arm", "bone:arm")]))
+        build(SoftBody(bone, MATERIAL, fixed=Fix("ymin", axes="y")), skeleton=Skeleton([Link("arm", "bone:arm")]))
     with pytest.raises(SceneError, match="not in the mesh"):
-        build(HALF, MATERIAL, fixed=Fix("nowhere", axes="y"))
-    model, params = build(HALF, MATERIAL, fixed=[Fix("xmin"), Fix("ymin", axes="y")])
+        build(SoftBody(HALF, MATERIAL, fixed=Fix("nowhere", axes="y")))
+    model, params = build(SoftBody(HALF, MATERIAL, fixed=[Fix("xmin"), Fix("ymin", axes="y")]))
     with pytest.raises(SceneError, match="whole free vertices"):
         diffrax_rollout(model, params, initial_state(model, params), 0.01, [0.01])
 
@@ -209,8 +210,9 @@ def _cook_slab(cells: int, thickness: float = 2 * MM):
     ends = (unit[right, 1] < 1e-12) | (unit[right, 1] > 1 - 1e-12)
     force = np.zeros((mesh.n_vertices, 3))
     force[right, 1] = COOK_SHEAR * thickness / 2 * np.where(ends, 0.5, 1.0) / cells
-    model, params = build(mesh, Material(E=COOK_E, nu=COOK_NU, density=1.0),
-                          fixed=[Fix(lambda p: p[:, 0] < 1e-12), Fix(lambda p: np.ones(len(p), bool), axes="z")],
+    model, params = build(SoftBody(mesh, Material(E=COOK_E, nu=COOK_NU, density=1.0),
+                                   fixed=[Fix(lambda p: p[:, 0] < 1e-12),
+                                          Fix(lambda p: np.ones(len(p), bool), axes="z")]),
                           options=Options(gravity=(0.0, 0.0, 0.0), tol=1e-10, max_iter=50000))
     corner = np.flatnonzero((unit[:, 0] > 1 - 1e-12) & (unit[:, 1] > 1 - 1e-12))
     return mesh, model, params, force, corner

@@ -13,6 +13,7 @@ from softbody.linsolve import DenseCholesky
 from softbody.material import Material
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, SceneError, build, initial_state
+from softbody.scene import SoftBody
 from softbody.obstacles import Plane
 from softbody.simulate import _rollout, rollout
 from softbody.solvers import LBFGS, LocalGlobal, Step, Vertices
@@ -22,7 +23,7 @@ MESH = grid_box((0.04, 0.01, 0.01), (4, 1, 1))
 
 
 def _build(**kwargs):
-    return build(MESH, Material(E=1e5, nu=0.3), fixed="xmin", **kwargs)
+    return build(SoftBody(MESH, Material(E=1e5, nu=0.3), fixed="xmin"), **kwargs)
 
 
 def test_build_resolves_defaults_once():
@@ -30,14 +31,14 @@ def test_build_resolves_defaults_once():
     assert model.step == Step(Vertices(), LBFGS(), None) and model.options.solver is model.step.solver
     assert isinstance(model.options.adjoint, Implicit) and model.options.contact is None and model.rig is None
     assert model.options.linear_solver is not None and model.linear_solver is model.options.linear_solver
-    contact, _ = build(MESH, Material(), obstacles=[Plane()])
+    contact, _ = build(SoftBody(MESH, Material()), obstacles=[Plane()])
     assert contact.step == Step(Vertices(), LBFGS(), Contact()) and contact.options.contact is contact.step.contact
     chosen = Options(solver=LocalGlobal(), adjoint=Unrolled(), linear_solver=DenseCholesky())
     model, _ = _build(options=chosen)
     assert model.options == chosen  # what the user chose is kept as given
     assert model.step == Step(Vertices(), LocalGlobal(), None)
     mine = Contact(splitting=Diagonal(), history=5)
-    model, _ = build(MESH, Material(), obstacles=[Plane()], options=Options(contact=mine))
+    model, _ = build(SoftBody(MESH, Material()), obstacles=[Plane()], options=Options(contact=mine))
     assert model.step.contact is mine and model.options.contact is mine
 
 
@@ -46,11 +47,11 @@ def test_unsupported_combinations_are_refused_before_compiling(no_compiling):
     with pytest.raises(SceneError, match="Options.contact sets the contact solver, but the scene has no obstacles"):
         _build(options=Options(contact=Contact()))
     with pytest.raises(SceneError, match="a step with contact is differentiated through the fixed point"):
-        build(MESH, Material(), obstacles=[Plane()], options=Options(adjoint=Unrolled()))
+        build(SoftBody(MESH, Material()), obstacles=[Plane()], options=Options(adjoint=Unrolled()))
     with pytest.raises(SceneError, match="Options.solver must be a nonlinear solver"):
         _build(options=Options(solver=Contact()))
     with pytest.raises(SceneError, match="Options.contact must be a softbody.contact.Contact"):
-        build(MESH, Material(), obstacles=[Plane()], options=Options(contact=LBFGS()))
+        build(SoftBody(MESH, Material()), obstacles=[Plane()], options=Options(contact=LBFGS()))
     with pytest.raises(SceneError, match="Options.adjoint must be"):
         _build(options=Options(adjoint="implicit"))
 
@@ -60,10 +61,10 @@ def test_models_compare_by_content_and_share_compiled_code():
     b, _ = _build()
     assert a is not b and a == b and hash(a) == hash(b)
     assert a != _build(options=Options(dt=0.02))[0]
-    assert a == build(MESH, Material(E=2e5, nu=0.3), fixed="xmin")[0]  # E is a Param: no recompile
+    assert a == build(SoftBody(MESH, Material(E=2e5, nu=0.3), fixed="xmin"))[0]  # E is a Param: no recompile
     other = dataclasses.replace(MESH, points=MESH.points * 1.01)
-    assert a != build(other, Material(E=1e5, nu=0.3), fixed="xmin")[0]
-    assert a != build(MESH, Material(E=1e5, nu=0.3), fixed="xmax")[0]
+    assert a != build(SoftBody(other, Material(E=1e5, nu=0.3), fixed="xmin"))[0]
+    assert a != build(SoftBody(MESH, Material(E=1e5, nu=0.3), fixed="xmax"))[0]
     rollout(a, params, initial_state(a, params), n_steps=2)
     size = _rollout._cache_size()
     rollout(b, params, initial_state(b, params), n_steps=2)

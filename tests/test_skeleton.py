@@ -17,6 +17,7 @@ from softbody.material import Material
 from softbody.meshing import Region
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, SceneError, build, initial_state, prepare
+from softbody.scene import SoftBody
 from softbody.obstacles import Plane
 from softbody.simulate import contact_forces, rollout
 from softbody.solvers import NonlinearSolver
@@ -102,7 +103,7 @@ def test_free_root_rotates_about_its_centre_of_mass(chain):
 def test_schur_solve_equals_direct_reduced_solve(bar, chain):
     """The Schur-complement direction against a dense solve of the full reduced system
     ``[[Q_ff, Q_fr B], [B^T Q_rf, B^T Q_rr B]]`` (with one joint held at a limit)."""
-    model, params = build(bar, SKIN, skeleton=chain.skeleton, options=Options(dt=0.01))
+    model, params = build(SoftBody(bar, SKIN), skeleton=chain.skeleton, options=Options(dt=0.01))
     prep = prepare(model, params)
     a = np.asarray(model.pattern.to_dense(prep.data))
     n, bone = bar.n_vertices, chain.bone
@@ -152,7 +153,7 @@ def test_rigid_pendulum_period_and_rigidity():
     pivot = np.array([0.01, 0.01, 0.12])
     rig = Skeleton([Link("bob", "bone:bob", None, Revolute((0.0, 1.0, 0.0), tuple(pivot)))]).bind(mesh)
     dt, g = 1e-3, 9.81
-    model, params = build(mesh, SKIN, skeleton=rig.skeleton, options=Options(dt=dt, tol=1e-8))
+    model, params = build(SoftBody(mesh, SKIN), skeleton=rig.skeleton, options=Options(dt=dt, tol=1e-8))
     mass = np.asarray(prepare(model, params).mass)[:, 0]
     arm = mesh.points - pivot
     inertia = float(np.sum(mass * (arm[:, 0] ** 2 + arm[:, 2] ** 2)))
@@ -190,7 +191,7 @@ def test_two_link_arm_in_soft_skin_keeps_bone_lengths_and_joint_limits(arm):
     mesh, _ = arm
     rig = Skeleton([Link("upper", "bone:upper", None, Revolute((0.0, 1.0, 0.0), (0.02, 0.02, 0.02), (-0.3, 0.01))),
                     Link("fore", "bone:fore", "upper", Revolute((0.0, 1.0, 0.0), (0.10, 0.02, 0.02)))]).bind(mesh)
-    model, params = build(mesh, SKIN, fixed="xmin", skeleton=rig.skeleton, options=Options(dt=0.01))
+    model, params = build(SoftBody(mesh, SKIN, fixed="xmin"), skeleton=rig.skeleton, options=Options(dt=0.01))
     traj = rollout(model, params, initial_state(model, params), n_steps=25)
     assert bool(jnp.all(traj.info.converged))
     xs = np.asarray(traj.x)
@@ -219,7 +220,8 @@ def test_joint_torque_and_saturated_servo_spin_a_hinged_body():
     centre = np.array([0.02, 0.01, 0.01])
     rig = Skeleton([Link("body", "bone:body", None, Revolute((0.0, 0.0, 1.0), tuple(centre)))]).bind(mesh)
     tau, tau_s, dt, n_steps = 1e-4, 2e-4, 1e-3, 100
-    model, params = build(mesh, SKIN, skeleton=rig.skeleton,
+    model, params = build(SoftBody(mesh, SKIN),
+                          skeleton=rig.skeleton,
                           actuators=[JointTorque(["body"]), JointServo(["body"], stiffness=1.0, torque_limit=tau_s)],
                           options=Options(dt=dt, gravity=(0.0, 0.0, 0.0), tol=1e-10))
     servo = model.terms[1]
@@ -239,7 +241,7 @@ def test_servo_holds_a_joint_at_its_target_against_gravity(arm):
     gravity pull back, so the servo settles where its torque balances them, slightly
     below the target (stiff gain: within 0.02 rad)."""
     mesh, rig = arm
-    model, params = build(mesh, Material(E=1e4, nu=0.3, density=1000.0, alpha=20.0), fixed="xmin",
+    model, params = build(SoftBody(mesh, Material(E=1e4, nu=0.3, density=1000.0, alpha=20.0), fixed="xmin"),
                           skeleton=rig.skeleton, options=Options(dt=0.01),
                           actuators=[JointServo(["upper", "fore"], stiffness=50.0, torque_limit=5.0)])
     servo = model.terms[0]
@@ -288,15 +290,15 @@ def test_bad_skeleton_scenes_are_refused_before_compiling(bar, arm, no_compiling
     skeleton = Skeleton([Link("a", "bone:a", None, Free())])
     rig = skeleton.bind(bar)
     with pytest.raises(SkeletonError, match="bone vertices are fixed"):
-        build(bar, SKIN, fixed=rig.bone[:1], skeleton=skeleton)
+        build(SoftBody(bar, SKIN, fixed=rig.bone[:1]), skeleton=skeleton)
     with pytest.raises(SceneError, match="skeleton must be a softbody.skeleton.Skeleton"):
-        build(bar, SKIN, skeleton=rig)
+        build(SoftBody(bar, SKIN), skeleton=rig)
     with pytest.raises(SceneError, match="the scene has none"):
-        build(bar, SKIN, actuators=[JointTorque(["upper"])])
+        build(SoftBody(bar, SKIN), actuators=[JointTorque(["upper"])])
     with pytest.raises(SceneError, match="only Revolute and Prismatic"):
-        build(bar, SKIN, skeleton=skeleton, actuators=[JointTorque(["a"])])
+        build(SoftBody(bar, SKIN), skeleton=skeleton, actuators=[JointTorque(["a"])])
     with pytest.raises(SkeletonError, match="no link 'nope' in the skeleton"):
-        build(arm[0], SKIN, skeleton=arm[1].skeleton, actuators=[JointServo(["nope"])])
+        build(SoftBody(arm[0], SKIN), skeleton=arm[1].skeleton, actuators=[JointServo(["nope"])])
     with pytest.raises(SceneError, match="write \\['upper'\\]"):
         JointTorque("upper")
 
@@ -304,8 +306,8 @@ def test_bad_skeleton_scenes_are_refused_before_compiling(bar, arm, no_compiling
         pass
 
     with pytest.raises(SceneError, match="a scene with a skeleton runs the solvers \\['LBFGS', 'LocalGlobal'\\]"):
-        build(bar, SKIN, skeleton=skeleton, options=Options(solver=Newton()))
-    model, _ = build(bar, SKIN, skeleton=skeleton, obstacles=[Plane(mu_s=0.5)])
+        build(SoftBody(bar, SKIN), skeleton=skeleton, options=Options(solver=Newton()))
+    model, _ = build(SoftBody(bar, SKIN), skeleton=skeleton, obstacles=[Plane(mu_s=0.5)])
     assert isinstance(model.step.coordinates, Reduced) and model.step.contact is not None
     assert model.rig.skeleton is skeleton
 
@@ -319,10 +321,11 @@ def test_joint_torque_gradient_matches_finite_differences_over_a_rollout(arm):
     whose gradient matched its own differences but not the simulation's."""
     mesh, rig = arm
     options = dict(dt=0.01, tol=1e-10, max_iter=300)
-    model, params = build(mesh, SKIN, fixed="xmin", skeleton=rig.skeleton, actuators=[JointTorque(["upper", "fore"])],
+    model, params = build(SoftBody(mesh, SKIN, fixed="xmin"),
+                          skeleton=rig.skeleton, actuators=[JointTorque(["upper", "fore"])],
                           options=Options(**options, adjoint=Unrolled()))
-    plain, _ = build(mesh, SKIN, fixed="xmin", skeleton=rig.skeleton, actuators=[JointTorque(["upper", "fore"])],
-                     options=Options(**options))
+    plain, _ = build(SoftBody(mesh, SKIN, fixed="xmin"),
+                     skeleton=rig.skeleton, actuators=[JointTorque(["upper", "fore"])], options=Options(**options))
     state0 = initial_state(model, params)
     controls = jnp.tile(jnp.array([2e-3, -1e-3]), (4, 1))
     traj = rollout(model, params, state0, controls=controls)
@@ -352,8 +355,8 @@ def test_implicit_gradient_of_torques_servos_and_material_matches_finite_differe
     solver's stopping noise (1e-4 relative at a step of 1e-4; the gradient itself agreed
     to 4e-7 at 1e-12)."""
     mesh, rig = arm
-    model, params = build(mesh, SKIN, fixed="xmin", skeleton=rig.skeleton,
-                          actuators=[JointTorque(["upper"]), JointServo(["fore"], stiffness=0.05)],
+    model, params = build(SoftBody(mesh, SKIN, fixed="xmin"),
+                          skeleton=rig.skeleton, actuators=[JointTorque(["upper"]), JointServo(["fore"], stiffness=0.05)],
                           options=Options(dt=0.01, tol=1e-12, max_iter=300))
     state0 = initial_state(model, params)
     tip = jnp.asarray(np.flatnonzero(mesh.points[:, 0] > 0.2 - 1e-9))
@@ -384,7 +387,8 @@ def test_two_link_arm_joint_angles_converge_at_first_order_in_dt(arm):
     mesh, rig = arm
     angles = []
     for dt in (0.01, 0.005, 0.0025):
-        model, params = build(mesh, SKIN, fixed="xmin", skeleton=rig.skeleton, options=Options(dt=dt, tol=1e-9))
+        model, params = build(SoftBody(mesh, SKIN, fixed="xmin"),
+                              skeleton=rig.skeleton, options=Options(dt=dt, tol=1e-9))
         traj = rollout(model, params, initial_state(model, params), n_steps=round(0.08 / dt))
         assert bool(jnp.all(traj.info.converged))
         xs = np.asarray(traj.x)
@@ -417,9 +421,9 @@ def test_jointed_body_sticks_on_an_incline_below_the_friction_angle_and_slides_a
     rig = Skeleton([Link("upper", "bone:upper", None, Free()),
                     Link("fore", "bone:fore", "upper", Revolute((0.0, 1.0, 0.0), (0.10, 0.02, 0.02)))]).bind(mesh)
     dt, mu_s, mu_k = 0.01, 0.5, 0.4
-    model, params = build(mesh, Material(E=1e5, nu=0.3, density=1000.0, beta=0.01), skeleton=rig.skeleton,
-                          options=Options(dt=dt, gravity=(0.0, 0.0, 0.0), tol=1e-8, max_iter=3000),
-                          obstacles=[Plane(mu_s=mu_s, mu_k=mu_k)])
+    model, params = build(SoftBody(mesh, Material(E=1e5, nu=0.3, density=1000.0, beta=0.01)),
+                          skeleton=rig.skeleton, obstacles=[Plane(mu_s=mu_s, mu_k=mu_k)],
+                          options=Options(dt=dt, gravity=(0.0, 0.0, 0.0), tol=1e-8, max_iter=3000))
     mass = np.asarray(prepare(model, params).mass)
 
     def on_incline(tan_theta, kinetic, n_steps):
@@ -473,9 +477,9 @@ def test_gradient_through_skeleton_contact_matches_central_differences(arm):
     rig = Skeleton([Link("upper", "bone:upper", None, Free()),
                     Link("fore", "bone:fore", "upper", Revolute((0.0, 1.0, 0.0), (0.10, 0.02, 0.02)))]).bind(mesh)
     dt, mu_s = 0.01, 0.5
-    model, params = build(mesh, Material(E=1e5, nu=0.3, density=1000.0), skeleton=rig.skeleton,
-                          options=Options(dt=dt, gravity=(0.0, 0.0, 0.0), tol=1e-10, max_iter=3000),
-                          obstacles=[Plane(mu_s=mu_s, mu_k=0.4)])
+    model, params = build(SoftBody(mesh, Material(E=1e5, nu=0.3, density=1000.0)),
+                          skeleton=rig.skeleton, options=Options(dt=dt, gravity=(0.0, 0.0, 0.0), tol=1e-10,
+                                                                 max_iter=3000), obstacles=[Plane(mu_s=mu_s, mu_k=0.4)])
     r = rot_y(np.arctan(1.1 * mu_s))
     x0 = mesh.points @ r.T
     forces = ramped_gravity(np.asarray(prepare(model, params).mass), 15, dt)

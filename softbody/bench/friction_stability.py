@@ -55,6 +55,7 @@ from softbody.material import Material
 from softbody.meshing import TetMesh, examples
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, build, initial_state, prepare
+from softbody.scene import SoftBody
 from softbody.objective import solve_step, step_objective
 from softbody.obstacles import Plane
 from softbody.solvers import LocalGlobal, StepProblem
@@ -209,10 +210,10 @@ def run(out: Path, quick: bool) -> dict:
         for dt in steps:
             options = Options(dt=dt, tol=TOL, max_iter=2000, solver=LocalGlobal())
             scene = dict(options=options, obstacles=[Plane(mu_s=0.5, mu_k=0.4)])
-            splitting_only, base = build(mesh, Material(E=youngs[0], nu=0.45), **scene)
-            fast, _ = build(
-                mesh, Material(E=youngs[0], nu=0.45),
-                **{**scene, "options": dataclasses.replace(options, contact=Contact(active_set=ActiveSet()))})
+            body = SoftBody(mesh, Material(E=youngs[0], nu=0.45))
+            splitting_only, base = build(body, **scene)
+            fast, _ = build(body, **{**scene, "options": dataclasses.replace(
+                options, contact=Contact(active_set=ActiveSet()))})
             timers = (_timed_step(fast), _timed_step(splitting_only))
             for young in youngs:
                 params = eqx.tree_at(lambda p: p.E, base, jnp.full_like(base.E, young))
@@ -226,12 +227,8 @@ def run(out: Path, quick: bool) -> dict:
             for split_name, splitting in SPLITTINGS.items():
                 options = Options(dt=dt, tol=TOL, max_iter=2000, solver=LocalGlobal(),
                                   contact=Contact(splitting=splitting))
-                model, params = build(
-                    mesh,
-                    Material(E=youngs[0], nu=0.45),
-                    options=options,
-                    obstacles=[Plane(mu_s=0.5, mu_k=0.4)],
-                )
+                model, params = build(SoftBody(mesh, Material(E=youngs[0], nu=0.45)),
+                                      options=options, obstacles=[Plane(mu_s=0.5, mu_k=0.4)])
                 iterate = _iterations(model, n_plain)
                 for young in youngs:
                     params = eqx.tree_at(lambda p: p.E, params, jnp.full_like(params.E, young))

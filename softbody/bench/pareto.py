@@ -77,10 +77,11 @@ class Cantilever:
         """``(model, params)`` of the scene on mesh ``k`` with the given step options."""
         from softbody.material import Material
         from softbody.model import Options, build
+        from softbody.scene import SoftBody
 
         options = Options(dt=dt, tol=tol, max_iter=max_iter, solver=solver, gravity=(0.0, 0.0, 0.0),
                           linear_solver=linear_solver)
-        return build(self.mesh(k), Material(E=self.E, nu=self.nu, density=self.density), fixed="fixed",
+        return build(SoftBody(self.mesh(k), Material(E=self.E, nu=self.nu, density=self.density), fixed="fixed"),
                      options=options)
 
     def initial_state(self, model, params):

@@ -32,6 +32,7 @@ def load_scene(tol: float = 1e-4, **option_overrides):
     from softbody.material import Material
     from softbody.meshing import Region, TetMesh
     from softbody.model import Options, build, initial_state
+    from softbody.scene import SoftBody
 
     with resources.files("softbody.bench").joinpath("data/diffpd_tet_cantilever.npz").open("rb") as fh:
         scene = dict(np.load(fh))
@@ -41,8 +42,8 @@ def load_scene(tol: float = 1e-4, **option_overrides):
                     tuple(f"m{i}" for i in range(len(act))), stiffness=1e5)
     frames = int(scene["frames"])
     options = Options(**{"dt": float(scene["dt"]), "tol": tol, "max_iter": 2000, **option_overrides})
-    model, params = build(mesh, Material(E=1e6, nu=0.45, density=1e3), fixed="fixed", options=options,
-                          actuators=[muscle])
+    model, params = build(SoftBody(mesh, Material(E=1e6, nu=0.45, density=1e3), fixed="fixed", actuators=[muscle]),
+                          options=options)
     state0 = initial_state(model, params, x=scene["q0"].reshape(-1, 3), v=scene["v0"].reshape(-1, 3))
     controls = jnp.broadcast_to(1.0 - jnp.asarray(scene["a0"]), (frames, len(act)))
     forces = jnp.broadcast_to(jnp.asarray(scene["f0"].reshape(-1, 3)), (frames,) + mesh.points.shape)

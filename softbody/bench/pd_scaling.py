@@ -38,6 +38,7 @@ def run(out: Path, quick: bool) -> dict:
     from softbody.material import Material
     from softbody.meshing.grid import grid_box
     from softbody.model import Options, build, initial_state, prepare
+    from softbody.scene import SoftBody
     from softbody.objective import step_objective
 
     solvers = {"SparseCholesky": linsolve.SparseCholesky(), "DenseCholesky": linsolve.DenseCholesky(),
@@ -53,7 +54,7 @@ def run(out: Path, quick: bool) -> dict:
                 continue
             if name == "PCG" and n > 9000 and quick:
                 continue
-            model, params = build(mesh, Material(E=1e6, nu=0.45), fixed="fixed",
+            model, params = build(SoftBody(mesh, Material(E=1e6, nu=0.45), fixed="fixed"),
                                   options=Options(dt=0.01, linear_solver=solver))
             s0 = initial_state(model, params)
             t0 = time.perf_counter()

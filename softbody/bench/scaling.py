@@ -36,8 +36,9 @@ def _beam(cells):
 def _build(mesh, dt, solver):
     from softbody.material import Material
     from softbody.model import Options, build
+    from softbody.scene import SoftBody
 
-    return build(mesh, Material(E=1e6, nu=0.45, density=1000.0, alpha=1.0), fixed="fixed",
+    return build(SoftBody(mesh, Material(E=1e6, nu=0.45, density=1000.0, alpha=1.0), fixed="fixed"),
                  options=Options(dt=dt, tol=1e-4, max_iter=500, linear_solver=solver))
 
 

@@ -96,6 +96,7 @@ def scene(n_joints: int | None, mesh=None):
     from softbody.material import Material
     from softbody.meshing import quadruped
     from softbody.model import Options, build, initial_state
+    from softbody.scene import SoftBody
     from softbody.solvers import LBFGS, LocalGlobal
 
     mesh = quadruped() if mesh is None else mesh
@@ -103,8 +104,8 @@ def scene(n_joints: int | None, mesh=None):
     if n_joints is not None:
         mesh, skel = skeleton(mesh, n_joints)
         solver = LBFGS()
-    model, params = build(mesh, Material(E=1e5, nu=0.3, density=1e3), fixed="feet", skeleton=skel,
-                          options=Options(dt=0.01, max_iter=500, solver=solver))
+    model, params = build(SoftBody(mesh, Material(E=1e5, nu=0.3, density=1e3), fixed="feet"),
+                          skeleton=skel, options=Options(dt=0.01, max_iter=500, solver=solver))
     return model, params, initial_state(model, params)
 
 
