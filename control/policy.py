@@ -1,9 +1,10 @@
 """Closed-loop control: a small MLP policy trained through the differentiable simulation.
 
 At every step the policy reads an observation of the current state and outputs the
-activations of that step, so the rollout is a ``lax.scan`` of
-``observe -> policy -> softbody.simulate.step`` (:func:`policy_rollout`); the gradient of a
-trajectory loss flows back through the simulation *and* through the feedback loop.
+activations of that step, so the rollout is the one loop of every rollout
+(:func:`softbody.simulate.integrate`) with ``observe -> policy`` choosing each step's
+controls (:func:`policy_rollout`); the gradient of a trajectory loss flows back through
+the simulation *and* through the feedback loop.
 
 Observations (:class:`Observations`), all dimensionless:
 
@@ -29,9 +30,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from softbody.model import Model, Params, State, initial_state, prepare
-from softbody._types import RESULTS
-from softbody.simulate import Trajectory, _first_failure, _inverted, _Messages, _raise_failure, _step_templates, step
+from softbody.model import Model, Params, State, initial_state
+from softbody.simulate import Trajectory, _Messages, _raise_failure, integrate, integrator_of
 
 from .errors import ControlError
 from .losses import Loss, centroid_weights, region_vertices
@@ -185,27 +185,15 @@ def policy_rollout(model: Model, params: Params, policy, observations: Observati
     if not throw:
         return traj, controls
     return _raise_failure((traj, controls), failed, branch,
-                          _Messages(_step_templates(model, "policy_rollout"), int(n_steps)))
+                          _Messages(integrator_of(model).templates(model, "policy_rollout"), int(n_steps)))
 
 
 @eqx.filter_jit
 def _policy_rollout(model, params, policy, observations, n_steps, state0):
-    prep = prepare(model, params)
-    inverted0 = _inverted(model, prep, state0.x)
+    def choose(state, _):
+        return policy(observations(state, state0)), None
 
-    def body(carry, _):
-        state, bad = carry
-        a = policy(observations(state, state0))
-        new, info = step(model, prep, state, a)
-        finite = jnp.all(jnp.isfinite(new.x)) & jnp.all(jnp.isfinite(new.v)) & jnp.isfinite(info.residual)
-        result = RESULTS.of(finite=finite, converged=info.converged, inverted=info.inverted, inverted0=inverted0)
-        info = eqx.tree_at(lambda i: i.result, info, jnp.where(bad, int(RESULTS.nonfinite), result).astype(jnp.int32))
-        return (new, bad | ~finite), (new.x, new.v, info, a)
-
-    _, (xs, vs, info, controls) = jax.lax.scan(body, (state0, jnp.asarray(False)), None, length=n_steps)
-    failed, branch = _first_failure(info.result, xs, vs)
-    traj = Trajectory(x=jnp.concatenate([state0.x[None], xs]), v=jnp.concatenate([state0.v[None], vs]), info=info)
-    return traj, controls, failed, branch
+    return integrate(integrator_of(model), model, params, state0, n_steps, choose=choose)
 
 
 @dataclass

@@ -15,7 +15,8 @@ scene owns its physics: ``build([SoftBody(mesh, material, fixed=..., actuators=[
 skeleton=..., obstacles=[...])`` composes the step (the skeleton's reduced
 coordinates, contact where there are obstacles); the options choose only numerics.
 Stepping: :func:`rollout`, :func:`step`, :func:`solve_static`, :class:`Trajectory`,
-:class:`StepInfo`, :class:`SimulationError`. Strategies: :class:`LBFGS`,
+:class:`StepInfo`, :class:`SimulationError`; integrators :class:`ImplicitEuler` (default)
+and :class:`BDF2` (``Options(integrator=sb.BDF2())``). Strategies: :class:`LBFGS`,
 :class:`LocalGlobal` (nonlinear solvers, ``Options(solver=...)``), :class:`Contact` (the
 contact solver's settings, ``Options(contact=...)``), :class:`Implicit`, :class:`ImplicitForward`,
 :class:`Unrolled` (differentiation), :func:`check_grad`. Parts by module:
@@ -62,8 +63,8 @@ _NAMES = {
     "Skeleton": "softbody.skeleton",
     "Contact": "softbody.contact",
     "RESULTS": "softbody._types",
-    **dict.fromkeys(("SimulationError", "Trajectory", "check_trajectory", "contact_forces", "rollout", "solve_static",
-                    "step"), "softbody.simulate"),
+    **dict.fromkeys(("BDF2", "ImplicitEuler", "SimulationError", "Trajectory", "check_trajectory", "contact_forces",
+                    "rollout", "solve_static", "step"), "softbody.simulate"),
     **dict.fromkeys(("LBFGS", "LocalGlobal"), "softbody.solvers"),
     **dict.fromkeys(("Adjoint", "Implicit", "ImplicitForward", "Unrolled", "check_grad"), "softbody.gradients"),
 }

@@ -1,5 +1,5 @@
-"""The interfaces that strategies and scene parts implement (the bottom layer: it imports
-no strategy and nothing else of softbody).
+"""The interfaces that strategies and scene parts implement (the bottom layer, with
+:mod:`softbody._types`, the only module of softbody it imports: it imports no strategy).
 
 Actuators contribute to a step's objective in one of three ways, one base class each, so
 that the step dispatches on the type of a term rather than on which methods it happens to
@@ -162,4 +162,37 @@ class Coordinates:
             moves the remaining unknowns by their block of the splitting and returns
             their squared residual ``r2``.
         """
+        raise NotImplementedError
+
+
+class Integrator:
+    """A time integrator: what one step of a rollout does (the pattern of optax's
+    ``init``/``update``). :func:`softbody.simulate.rollout`, the closed-loop
+    :func:`softbody.control.policy_rollout` and :func:`softbody.explicit.explicit_rollout`
+    run one loop (:func:`softbody.simulate.integrate`) over an integrator: it calls
+    :meth:`init` once, then :meth:`step` per step, and sets each step's result code and
+    the failure handling (``throw``) the same way for all. An integrator may carry a
+    memory from step to step (a multistep method's earlier states).
+    """
+
+    def init(self, model, params, state0):
+        """``(prep, memory)``: the per-rollout data (the prepared scene,
+        :class:`softbody._types.Prepared`) and the memory the first step gets."""
+        raise NotImplementedError
+
+    def step(self, model, prep, state, memory, activation, force):
+        """Advance ``state`` (:class:`softbody._types.State`) by one step under the
+        ``(n_channels,)`` ``activation`` and the ``(n, 3)`` ``force`` (or ``None``).
+
+        Returns:
+            ``(next_state, next_memory, info)``: the :class:`softbody._types.State`, the
+            memory of the next step and the step's :class:`softbody._types.StepInfo` (its
+            ``result`` is set by the loop).
+        """
+        raise NotImplementedError
+
+    def templates(self, model, call: str) -> tuple[str, ...]:
+        """The failure messages of a step (``{step}`` stands for its index), one per
+        variant of :func:`softbody.simulate._first_failure`; ``call`` names the function
+        a user called."""
         raise NotImplementedError

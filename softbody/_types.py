@@ -70,8 +70,12 @@ class Options:
             local step.
         adjoint: how gradients are taken: :class:`~softbody.gradients.Implicit` (``None``,
             the default, lets ``build`` pick it) or :class:`~softbody.gradients.Unrolled`.
+        integrator: the time stepping of rollouts and policies: ``None`` (default) for
+            implicit Euler (:class:`~softbody.simulate.ImplicitEuler`), or
+            :class:`~softbody.simulate.BDF2` (second order).
 
-    ``build`` stores a copy with every ``None`` resolved in ``Model.options``.
+    ``build`` stores a copy with every ``None`` but ``integrator`` resolved in
+    ``Model.options`` (:func:`softbody.simulate.integrator_of` resolves that one).
     """
 
     dt: float = 0.01
@@ -84,6 +88,7 @@ class Options:
     linear_solver: linsolve.LinearSolver | None = None
     rotation_iterations: int = 1
     adjoint: Adjoint | None = None
+    integrator: Integrator | None = None
 
     def __post_init__(self):
         if not (np.isfinite(self.dt) and self.dt > 0):

@@ -30,6 +30,7 @@ SCENES = {"cantilever": Cantilever}
 #: dt ~ 1e-4 s for 1% over that span), on the 24- and 99-vertex meshes.
 SMALL_FRONT = {"scene": Cantilever(duration=0.05, divisions=(1, 2)),
                "pd_dts": (1 / 300, 1 / 1000, 1 / 3000, 1 / 10000, 1 / 30000), "pd_tols": (1e-6,),
+               "bdf2_dts": (1 / 100, 1 / 300, 1 / 1000, 1 / 3000),
                "coarse_dts": (1 / 1000, 1 / 10000), "coarse_tols": (1e-6,)}
 
 
@@ -199,7 +200,7 @@ def run(args) -> int:
             grid = SMALL_FRONT
             print(f"measuring a small front on the {args.scene} scene ({grid['scene'].duration} s simulated)...",
                   flush=True)
-            rows, _ = measure_front(grid["scene"], grid, methods=("PD L-BFGS", "PD mesh"))
+            rows, _ = measure_front(grid["scene"], grid, methods=("PD L-BFGS", "PD BDF2", "PD mesh"))
         advice = advise(rows, args.tol)
     except AdviceError as err:
         print(f"softbody advise: {err}", file=sys.stderr)

@@ -21,69 +21,69 @@ speed over the smallest element size. Stiffness damping lowers the limit further
 from __future__ import annotations
 
 import functools
+from dataclasses import dataclass
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from softbody.elastic import deformation_gradient, scatter_stress, shape_gradients, strain_rate_damping
+from softbody.elastic import deformation_gradient
 from softbody import rotation as rot
 from softbody.model import Model, Params, State, prepare
-from softbody._types import RESULTS, StepInfo
-from softbody.objective import step_objective
-from softbody.simulate import Trajectory, _Messages, _activation, _check_controls, _first_failure, _raise_failure
+from softbody._interfaces import Integrator
+from softbody._types import StepInfo
+from softbody.objective import accelerations, step_objective
+from softbody.simulate import Trajectory, _Messages, _check_controls, _raise_failure, integrate
 
 Array = jax.Array
 
 
-def _forces(model: Model, prep, x0: Array, activation, force):
-    """``accel(x, v, q) -> (a (n, 3), q)``: accelerations of all vertices (0 on fixed ones)."""
-    evaluate, _ = step_objective(model, prep, x0, jnp.zeros_like(x0), None, activation, force, static=True)
-    free = jnp.asarray(model.free_mask)
-    g = shape_gradients(prep.dminv)
+@dataclass(frozen=True)
+class SymplecticEuler(Integrator):
+    """Semi-implicit Euler steps (the module docstring) of size ``dt``, a traced value (one
+    compiled program for any step size). Each step's :class:`~softbody._types.StepInfo`
+    records one force evaluation and zero solver iterations (``residual`` 0,
+    ``converged`` True, ``inverted`` not counted: 0); the loop
+    (:func:`softbody.simulate.integrate`) marks a non-finite step."""
 
-    def accel(x, v, q):
-        _, grad, q = evaluate(x, q)  # dE/dx - M g - f_ext on the free vertices
-        total = -grad - prep.mass_alpha * v
-        if model.stiffness_damping:
-            f = deformation_gradient(model, prep.dminv, x)
-            r = rot.rotation(f, q, 0)[0]  # the rotations of q, with the maximiser's derivative
-            f_rate = jnp.einsum("tai,ajt->ijt", v[jnp.asarray(model.mesh.tets)], g)
-            stress = strain_rate_damping(f + f_rate, f, r, prep.volume, prep.w_b, 1.0)[1]
-            total = total - scatter_stress(model, prep.dminv, stress)
-        return free * total / jnp.maximum(prep.mass, 1e-300), q
+    dt: Array
 
-    return accel
+    def init(self, model: Model, params: Params, state0: State):
+        return prepare(model, params, static=True), ()
+
+    def step(self, model: Model, prep, state: State, memory, activation, force):
+        free = jnp.asarray(model.free_mask)
+        acc, q = accelerations(model, prep, state, activation, force)
+        v = state.v + self.dt * acc
+        x = state.x + self.dt * v * free
+        zero = jnp.asarray(0)
+        info = StepInfo(iterations=zero, evaluations=jnp.asarray(1), residual=jnp.asarray(0.0),
+                        converged=jnp.asarray(True), inverted=zero, result=jnp.asarray(0, jnp.int32),
+                        fallback=jnp.asarray(False))
+        return State(x=x, v=v, rot=q, t=state.t + self.dt), memory, info
+
+    def templates(self, model: Model, call: str) -> tuple[str, ...]:
+        unstable = (f"step {{step}}: the explicit state became non-finite at dt = {model.options.dt:g} s; the step "
+                    "exceeds the stability limit (softbody.explicit.critical_time_step gives it): reduce dt or use "
+                    "the implicit softbody.simulate.rollout")
+        return (unstable,) * 5
 
 
 @functools.partial(jax.jit, static_argnums=(0, 5))
 def _explicit(model: Model, params: Params, state0: State, controls, forces, n_steps: int, dt):
-    """The scan of :func:`explicit_rollout`; ``dt`` is traced (one program for any step size)."""
-    prep = prepare(model, params, static=True)
-    h = dt
-    free = jnp.asarray(model.free_mask)
-
-    def body(carry, inputs):
-        x, v, q, bad = carry
-        a, f = inputs
-        accel = _forces(model, prep, state0.x, _activation(model, a), f)
-        acc, q_new = accel(x, v, q)
-        v_new = v + h * acc
-        x_new = x + h * v_new * free
-        finite = jnp.all(jnp.isfinite(x_new)) & jnp.all(jnp.isfinite(v_new))
-        x_new, v_new, q_new = (jnp.where(bad, o, n) for n, o in ((x_new, x), (v_new, v), (q_new, q)))
-        return (x_new, v_new, q_new, bad | ~finite), (x_new, v_new, bad | ~finite)
-
-    carry = (state0.x, state0.v * free, state0.rot, jnp.asarray(False))
-    (_, _, q, _), (xs, vs, bad) = jax.lax.scan(body, carry, (controls, forces), length=n_steps)
-    xs = jnp.concatenate([state0.x[None], xs])
-    vs = jnp.concatenate([state0.v[None] * free, vs])
-    return xs, vs, bad
+    """The loop of :func:`explicit_rollout`; ``dt`` is traced (one program for any step size).
+    Returns ``(trajectory, failed, branch)`` as :func:`softbody.simulate.integrate`."""
+    state0 = eqx.tree_at(lambda s: s.v, state0, state0.v * jnp.asarray(model.free_mask))
+    traj, _, failed, branch = integrate(SymplecticEuler(jnp.asarray(dt)), model, params, state0, n_steps,
+                                        (controls, forces))
+    return traj, failed, branch
 
 
 def explicit_rollout(model: Model, params: Params, state0: State, controls=None, forces=None,
                      n_steps: int | None = None, *, throw: bool = True) -> Trajectory:
-    """``n_steps`` semi-implicit Euler steps of size ``model.options.dt`` (one ``lax.scan``).
+    """``n_steps`` semi-implicit Euler steps of size ``model.options.dt`` (:class:`SymplecticEuler`
+    in the loop of every rollout, :func:`softbody.simulate.integrate`).
 
     Arguments:
         model, params: from :func:`softbody.model.build` (scenes without obstacles or a
@@ -97,10 +97,11 @@ def explicit_rollout(model: Model, params: Params, state0: State, controls=None,
 
     Returns:
         A :class:`~softbody.simulate.Trajectory` with ``x, v`` of shape ``(n_steps + 1, n, 3)``
-        (the first row is ``state0``); its ``info`` records one force evaluation and zero
-        solver iterations per step (``residual`` 0, ``converged`` True, ``inverted`` not
-        counted: 0) and ``result`` ``RESULTS.nonfinite`` from the first non-finite step
-        on (the state is held there), ``RESULTS.success`` before it.
+        (the first row is ``state0``, its velocities zero on fixed vertices); its ``info``
+        records one force evaluation and zero solver iterations per step (``residual`` 0,
+        ``converged`` True, ``inverted`` not counted: 0) and ``result``
+        ``RESULTS.nonfinite`` from the first non-finite step on (the state is held there),
+        ``RESULTS.success`` before it.
 
     Raises:
         SceneError: bad control or force shapes.
@@ -118,20 +119,12 @@ def explicit_rollout(model: Model, params: Params, state0: State, controls=None,
     if model.rig is not None:
         raise ValueError("explicit_rollout has no joint constraints: use softbody.simulate.rollout for skeletons")
     controls, forces, n_steps = _check_controls(model, controls, forces, n_steps)
-    xs, vs, bad = _explicit(model, params, state0, controls, forces, n_steps, model.options.dt)
-    zeros = jnp.zeros(n_steps)
-    info = StepInfo(iterations=zeros.astype(int), evaluations=jnp.ones(n_steps, int), residual=zeros,
-                    converged=jnp.ones(n_steps, bool), inverted=zeros.astype(int),
-                    result=jnp.where(bad, int(RESULTS.nonfinite), int(RESULTS.success)).astype(jnp.int32),
-                    fallback=jnp.zeros(n_steps, bool))
-    traj = Trajectory(x=xs, v=vs, info=info)
+    traj, failed, branch = _explicit(model, params, state0, controls, forces, n_steps, model.options.dt)
     if not throw:
         return traj
-    unstable = (f"step {{step}}: the explicit state became non-finite at dt = {model.options.dt:g} s; the step "
-                "exceeds the stability limit (softbody.explicit.critical_time_step gives it): reduce dt or use "
-                "the implicit softbody.simulate.rollout")
-    failed, branch = _first_failure(info.result, xs[1:], vs[1:])
-    return _raise_failure(traj, failed, branch, _Messages((unstable,) * 5, n_steps))
+    return _raise_failure(traj, failed, branch,
+                          _Messages(SymplecticEuler(jnp.asarray(model.options.dt)).templates(model, "explicit_rollout"),
+                                    n_steps))
 
 
 def critical_time_step(model: Model, params: Params, x=None, iterations: int = 300) -> float:

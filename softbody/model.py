@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from softbody import linsolve, rotation
-from softbody._interfaces import Actuator, ElementActuator
+from softbody._interfaces import Actuator, ElementActuator, Integrator
 from softbody.scene import SoftBody, assemble
 from softbody._types import Model, Options, Params, Prepared, SceneError, State
 from softbody.contact import Contact
@@ -98,6 +98,9 @@ def _compose(options: Options, rig: Rig | None, obstacles: tuple) -> Step:
     if options.contact is not None and not obstacles:
         raise SceneError("Options.contact sets the contact solver, but the scene has no obstacles: add "
                          "obstacles=[...] to build, or leave Options.contact at None")
+    if options.integrator is not None and not isinstance(options.integrator, Integrator):
+        raise SceneError(f"Options.integrator must be None (implicit Euler) or an integrator such as "
+                         f"softbody.simulate.BDF2(), got {options.integrator!r}")
     if not isinstance(options.adjoint, Adjoint):
         raise SceneError(f"Options.adjoint must be Implicit(), ImplicitForward() or Unrolled(), got "
                          f"{options.adjoint!r}")

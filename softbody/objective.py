@@ -14,7 +14,7 @@ import jax.numpy as jnp
 
 from softbody import rotation as rot
 from softbody._interfaces import ElementActuator, VertexActuator, VolumeActuator
-from softbody.elastic import (corotated, deformation_gradient, scatter_stress, strain_rate_damping,
+from softbody.elastic import (corotated, deformation_gradient, scatter_stress, shape_gradients, strain_rate_damping,
                               stress_derivative_product)
 from softbody._types import RESULTS, Model, Prepared, State, StepInfo
 from softbody.solvers import Solution, StepProblem
@@ -261,3 +261,32 @@ def solve_step(model: Model, prep: Prepared, state: State, activation, force, *,
                     result=RESULTS.of(finite=finite, converged=converged, inverted=inverted, inverted0=inverted0),
                     fallback=jnp.asarray(sol.fallback))
     return sol, info
+
+
+def accelerations(model: Model, prep: Prepared, state: State, activation, force) -> tuple[Array, Array]:
+    """The accelerations ``M^-1 (f(x) - alpha M v - f_beta(x, v) + M g + f_ext)`` of the
+    semi-discrete model at ``state`` (``f = -dE/dx`` the elastic and actuator forces,
+    ``f_beta`` the strain-rate damping force ``beta w_s V R sym(R^T F')``): what the
+    explicit integrator steps with and what starts BDF2.
+
+    Arguments:
+        model, prep: the scene and its prepared data; state: positions, velocities and
+            rotations (warm start of the local step).
+        activation: ``(n_channels,)``; force: ``(n, 3)`` external forces or ``None``.
+
+    Returns:
+        ``(a (n, 3), rot (4, t))``: accelerations (0 on fixed vertices) and the rotations
+        of the local step at ``state.x``.
+    """
+    x, v = state.x, state.v
+    evaluate, _ = step_objective(model, prep, x, jnp.zeros_like(x), None, activation, force, static=True)
+    free = jnp.asarray(model.free_mask)
+    _, grad, q = evaluate(x, state.rot)  # dE/dx - M g - f_ext on the free vertices
+    total = -grad - prep.mass_alpha * v
+    if model.stiffness_damping:
+        f = deformation_gradient(model, prep.dminv, x)
+        r = rot.rotation(f, q, 0)[0]  # the rotations of q, with the maximiser's derivative
+        f_rate = jnp.einsum("tai,ajt->ijt", v[jnp.asarray(model.mesh.tets)], shape_gradients(prep.dminv))
+        stress = strain_rate_damping(f + f_rate, f, r, prep.volume, prep.w_b, 1.0)[1]
+        total = total - scatter_stress(model, prep.dminv, stress)
+    return free * total / jnp.maximum(prep.mass, 1e-300), q

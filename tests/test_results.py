@@ -4,6 +4,7 @@ with ``throw=True``, and the same message when the call is traced under ``jax.ji
 
 import re
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -14,7 +15,8 @@ from softbody.material import Material
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, build, initial_state
 from softbody.scene import SoftBody
-from softbody.simulate import RESULTS, SimulationError, check_trajectory, rollout, solve_static
+from softbody.simulate import (RESULTS, ImplicitEuler, SimulationError, _Messages, check_trajectory, integrate,
+                               rollout, solve_static)
 
 #: 0.1 x 0.02 x 0.02 m beam on 5 x 1 x 1 cells (24 vertices, 30 tets), clamped at x = 0.
 BEAM = grid_box((0.1, 0.02, 0.02), (5, 1, 1))
@@ -149,3 +151,46 @@ def test_explicit_rollout_past_its_stability_limit_reports_nonfinite():
     assert np.all(result[:first] == RESULTS.success)
     message = _message(lambda: explicit_rollout(model, params, state, n_steps=200))
     assert message.startswith(f"step {first}: the explicit state became non-finite at dt = 0.001 s")
+
+
+# ------------------------------------------------------------------------------ the one loop
+
+
+class _BlowsUpAt(ImplicitEuler):
+    """Implicit Euler whose step ``k`` (by the state's time) ends with NaN positions."""
+
+    def __init__(self, k: int):
+        self.k = k
+
+    def step(self, model, prep, state, memory, activation, force):
+        new, memory, info = super().step(model, prep, state, memory, activation, force)
+        broken = jnp.round(state.t / model.options.dt) == self.k
+        return eqx.tree_at(lambda s: s.x, new, jnp.where(broken, jnp.nan, new.x)), memory, info
+
+
+def test_every_integrator_runs_in_the_one_loop():
+    """The loop of rollouts sets the codes and holds the state for any integrator: a step
+    that goes non-finite is reported at its index, the state is not advanced past it and
+    every later step carries the code; the closed loop (a policy choosing the controls
+    from the state) gives the open loop's steps bit for bit when it chooses the same
+    controls."""
+    model, params = build(SoftBody(BEAM, RUBBER, fixed="fixed"))
+    state = initial_state(model, params)
+    traj, activations, failed, branch = jax.jit(lambda p: integrate(_BlowsUpAt(2), model, p, state, 5))(params)
+    result = np.asarray(traj.info.result)
+    np.testing.assert_array_equal(result, [RESULTS.success] * 2 + [RESULTS.nonfinite] * 3)
+    assert bool(failed) and activations is None
+    assert _Messages(ImplicitEuler().templates(model, "rollout"), 5)[int(branch)].startswith(
+        "step 2: the positions became non-finite")
+    plain = rollout(model, params, state, n_steps=5)
+    np.testing.assert_allclose(traj.x[:3], plain.x[:3], rtol=0, atol=1e-15)  # round-off of another program
+    assert np.isnan(traj.x[3]).all()  # the failing step's own positions, then not advanced
+    np.testing.assert_array_equal(traj.x[4:], np.broadcast_to(traj.x[3], traj.x[4:].shape))
+
+    loads = np.zeros((5, model.n_vertices, 3))
+    loads[1:, BEAM.regions["tip"].vertices, 2] = -2.0
+    open_loop, _, _, _ = jax.jit(lambda p: integrate(ImplicitEuler(), model, p, state, 5, (None, loads)))(params)
+    closed, _, _, _ = jax.jit(lambda p: integrate(ImplicitEuler(), model, p, state, 5, loads,
+                                                  choose=lambda s, f: (None, f)))(params)
+    for a, b in zip(jax.tree.leaves(open_loop), jax.tree.leaves(closed)):
+        np.testing.assert_array_equal(a, b)

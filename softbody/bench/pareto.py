@@ -14,8 +14,8 @@ solution of the semi-discrete ODE on the finest mesh at rtol 1e-8 (sampled dense
 linearly interpolated). Runs on the finest mesh therefore measure the time integration
 error alone; runs on coarser meshes add the spatial error.
 
-Runs: projective dynamics (L-BFGS and plain local-global, tolerance x dt, and L-BFGS on
-coarser meshes), Newton's method on the same implicit-Euler steps (tolerance x dt),
+Runs: projective dynamics (L-BFGS and plain local-global, tolerance x dt, L-BFGS on
+coarser meshes, and L-BFGS with BDF2 steps, ``PD BDF2``), Newton's method on the same implicit-Euler steps (tolerance x dt),
 diffrax's stiff Kvaerno5 (tolerance), explicit semi-implicit Euler (a dt ladder through
 its stability limit). ``wall_s`` is the run without compilation; ``compile_s`` is
 reported beside it (for Newton: the first step, which compiles its kernels).
@@ -73,14 +73,14 @@ class Cantilever:
         return _mesh(self.length, self.width, k)
 
     def build(self, k: int, dt: float = 0.01, tol: float = 1e-6, solver=None, max_iter: int = 2000,
-              linear_solver=None):
+              linear_solver=None, integrator=None):
         """``(model, params)`` of the scene on mesh ``k`` with the given step options."""
         from softbody.material import Material
         from softbody.model import Options, build
         from softbody.scene import SoftBody
 
         options = Options(dt=dt, tol=tol, max_iter=max_iter, solver=solver, gravity=(0.0, 0.0, 0.0),
-                          linear_solver=linear_solver)
+                          linear_solver=linear_solver, integrator=integrator)
         return build(SoftBody(self.mesh(k), Material(E=self.E, nu=self.nu, density=self.density), fixed="fixed"),
                      options=options)
 
@@ -225,14 +225,15 @@ def _n_steps(scene: Cantilever, dt: float) -> int:
     return max(1, int(round(scene.duration / dt)))
 
 
-def run_pd(scene: Cantilever, k: int, dt: float, tol: float, solver=None, duration=None):
-    """Projective dynamics (``solver``: ``None`` = L-BFGS, or ``LocalGlobal()``)."""
+def run_pd(scene: Cantilever, k: int, dt: float, tol: float, solver=None, duration=None, integrator=None):
+    """Projective dynamics (``solver``: ``None`` = L-BFGS, or ``LocalGlobal()``; ``integrator``:
+    ``None`` = implicit Euler, or ``BDF2()``)."""
     import jax
 
     from softbody import simulate
 
     scene = scene if duration is None else dataclasses.replace(scene, duration=duration)
-    model, params = scene.build(k, dt=dt, tol=tol, solver=solver)
+    model, params = scene.build(k, dt=dt, tol=tol, solver=solver, integrator=integrator)
     state = scene.initial_state(model, params)
     n = _n_steps(scene, dt)
     t0 = time.perf_counter()
@@ -312,8 +313,8 @@ def run_explicit(scene: Cantilever, k: int, dt: float, duration=None):
     t0 = time.perf_counter()
     compiled = explicit._explicit.lower(model, params, state, None, None, n, dt).compile()
     compile_s = time.perf_counter() - t0
-    wall, (xs, _, bad) = _timed(lambda: compiled(params, state, None, None, dt))
-    return dt * np.arange(n + 1), scene.tip_displacement(xs), wall, compile_s, {"finite": not bool(np.any(bad))}
+    wall, (traj, failed, _) = _timed(lambda: compiled(params, state, None, None, dt))
+    return dt * np.arange(n + 1), scene.tip_displacement(traj.x), wall, compile_s, {"finite": not bool(failed)}
 
 
 def _explicit_ladder(scene: Cantilever, k: int, ladder, n_steps: int) -> list:
@@ -325,8 +326,8 @@ def _explicit_ladder(scene: Cantilever, k: int, ladder, n_steps: int) -> list:
     state = scene.initial_state(model, params)
     tried = []
     for dt in ladder:
-        xs, _, bad = explicit._explicit(model, params, state, None, None, n_steps, dt)
-        ok = _bounded(scene.tip_displacement(np.asarray(xs)), not bool(np.any(bad)))
+        traj, failed, _ = explicit._explicit(model, params, state, None, None, n_steps, dt)
+        ok = _bounded(scene.tip_displacement(np.asarray(traj.x)), not bool(failed))
         tried.append({"dt": dt, "stable": ok, "simulated_s": n_steps * dt, **({} if ok else {"note": "unbounded"})})
         if ok:
             break
@@ -350,19 +351,21 @@ def plan(quick: bool) -> dict:
     """The scene and the knob grid of the full or the quick bench."""
     if quick:
         return {"scene": Cantilever(duration=0.1, divisions=(1, 2)),
-                "pd_dts": (1 / 30, 1 / 100), "pd_tols": (1e-3, 1e-6),
+                "pd_dts": (1 / 30, 1 / 100), "pd_tols": (1e-3, 1e-6), "bdf2_dts": (1 / 30, 1 / 100),
                 "local_global_dts": (1 / 100,), "coarse_dts": (1 / 100,), "coarse_tols": (1e-6,),
                 "newton_dts": (1 / 100,), "newton_tols": (1e-8,), "diffrax_rtols": (1e-3,),
                 "explicit_dts": (2.5e-4, 1.25e-4), "stability_divisions": 1,
-                "stability_duration": 0.05, "stability_methods": ("PD L-BFGS", "explicit")}
+                "stability_duration": 0.05, "stability_methods": ("PD L-BFGS", "PD BDF2", "explicit")}
     return {"scene": Cantilever(duration=0.3, divisions=(1, 2, 3)),
             "pd_dts": DTS + (1 / 3000, 1 / 10000, 1 / 30000), "pd_tols": (1e-6,),
             "pd_loose": ((1 / 30, 1e-3), (1 / 100, 1e-3), (1 / 1000, 1e-3)),
+            "bdf2_dts": DTS + (1 / 3000,),
             "local_global_dts": (1 / 100, 1 / 300), "coarse_dts": (1 / 3000,), "coarse_tols": (1e-6,),
             "newton_dts": DTS, "newton_tols": (1e-8,),
             "diffrax_rtols": (1e-2, 1e-3, 1e-4),
             "explicit_dts": (2e-4, 1e-4, 5e-5, 2.5e-5), "stability_divisions": 2,
-            "stability_duration": 0.2, "stability_methods": ("PD L-BFGS", "PD LocalGlobal", "Newton", "explicit")}
+            "stability_duration": 0.2,
+            "stability_methods": ("PD L-BFGS", "PD LocalGlobal", "PD BDF2", "Newton", "explicit")}
 
 
 def _entry(method, knobs, ref: Reference, run, vertices) -> dict:
@@ -385,13 +388,15 @@ def _entry(method, knobs, ref: Reference, run, vertices) -> dict:
 
 def measure_front(scene: Cantilever, grid: dict, ref: Reference | None = None, methods=None) -> tuple[list, Reference]:
     """Run every method over its knobs; returns ``(rows, reference)``."""
+    from softbody.simulate import BDF2
     from softbody.solvers import LocalGlobal
 
     if ref is None:
         ref = reference(scene)
         print(f"reference: Tsit5 rtol {ref.rtol:g} on {scene.mesh(scene.finest).n_vertices} vertices, "
               f"{ref.wall_s:.1f} s", flush=True)
-    methods = methods or ("PD L-BFGS", "PD LocalGlobal", "PD mesh", "Newton", "diffrax Kvaerno5", "explicit")
+    methods = methods or ("PD L-BFGS", "PD LocalGlobal", "PD BDF2", "PD mesh", "Newton", "diffrax Kvaerno5",
+                          "explicit")
     rows = []
     k = scene.finest
     nv = scene.mesh(k).n_vertices
@@ -408,6 +413,11 @@ def measure_front(scene: Cantilever, grid: dict, ref: Reference | None = None, m
             for tol in grid["pd_tols"]:
                 rows.append(_entry("PD LocalGlobal", {"dt": dt, "tol": tol, "mesh_k": k}, ref,
                                    lambda: run_pd(scene, k, dt, tol, LocalGlobal()), nv))
+    if "PD BDF2" in methods:
+        for dt in grid["bdf2_dts"]:
+            for tol in grid["pd_tols"]:
+                rows.append(_entry("PD BDF2", {"dt": dt, "tol": tol, "mesh_k": k}, ref,
+                                   lambda: run_pd(scene, k, dt, tol, integrator=BDF2()), nv))
     if "PD mesh" in methods:
         for kc in scene.divisions[:-1]:
             for dt in grid["coarse_dts"]:
@@ -441,7 +451,7 @@ def stability_map(k: int, duration: float, methods, stiffnesses=(1e7, 1e4), ladd
     steps: at 1.15x the limit the fastest mode grows by 2.6x per step (round-off overflows
     in ~100 steps), but a rung within a few percent above the limit could pass.
     """
-    from softbody.simulate import SimulationError
+    from softbody.simulate import BDF2, SimulationError
     from softbody.solvers import LocalGlobal
 
     table = {}
@@ -458,7 +468,8 @@ def stability_map(k: int, duration: float, methods, stiffnesses=(1e7, 1e4), ladd
                             result = run_newton(scene, k, dt, 1e-8, duration=max(duration, dt))
                         else:
                             result = run_pd(scene, k, dt, 1e-6, LocalGlobal() if method == "PD LocalGlobal" else None,
-                                            duration=max(duration, dt))
+                                            duration=max(duration, dt),
+                                            integrator=BDF2() if method == "PD BDF2" else None)
                         ok = _bounded(result[1], result[4]["finite"])
                         note = "" if ok else "unbounded"
                     except (SimulationError, ValueError) as err:
