@@ -330,10 +330,14 @@ def contact_forces(model: Model, params: Params, traj: Trajectory, controls=None
         :data:`softbody.contact.CONTACT_STATES` (0: none, 1: stick, 2: slide).
 
     Raises:
-        SceneError: the scene has no obstacles, or shapes that do not fit.
+        SceneError: the scene has no obstacles, steps by another integrator than implicit
+            Euler, or shapes that do not fit.
     """
     if model.step.contact is None:
         raise SceneError("contact_forces needs a scene with obstacles; this one has none")
+    if type(integrator_of(model)) is not ImplicitEuler:
+        raise SceneError("contact_forces recomputes implicit-Euler steps; a scene built with "
+                         f"Options(integrator={type(integrator_of(model)).__name__}()) is not supported yet")
     n_steps = traj.x.shape[0] - 1
     controls, forces, n_steps = _check_controls(model, controls, forces, n_steps)
     return _contact_forces(model, params, traj.x, traj.v, controls, forces, jnp.asarray(t0, jnp.float64))
