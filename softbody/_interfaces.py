@@ -196,3 +196,8 @@ class Integrator:
         variant of :func:`softbody.simulate._first_failure`; ``call`` names the function
         a user called."""
         raise NotImplementedError
+
+    def starts(self, model, prep, xs, vs, t0, activation0, force0):
+        """For an implicit integrator, what each step of a computed trajectory solved (see
+        :meth:`softbody.simulate.ImplicitEuler.starts`); the explicit one has none."""
+        raise NotImplementedError

@@ -231,6 +231,14 @@ class ImplicitEuler(Integrator):
     def templates(self, model: Model, call: str) -> tuple[str, ...]:
         return _step_templates(model, call)
 
+    def starts(self, model: Model, prep: Prepared, xs, vs, t0, activation0, force0):
+        """What each step of a computed trajectory solved: ``(scene, x, v, t)``, the scene
+        whose implicit-Euler step it is and the ``(T, n, 3)`` positions, velocities and
+        ``(T,)`` times it started from (before a clamp motion moved the fixed vertices),
+        from the ``(T + 1, n, 3)`` ``xs``, ``vs`` and the first step's activation and force
+        (:func:`contact_forces` rebuilds the steps from them)."""
+        return model, xs[:-1], vs[:-1], t0 + model.options.dt * jnp.arange(xs.shape[0] - 1)
+
 
 class BDF2(ImplicitEuler):
     """Second-order backward differentiation (BDF2) PD steps: ``Options(integrator=BDF2())``.
@@ -278,6 +286,15 @@ class BDF2(ImplicitEuler):
         new, _, info = super().step(self._inner(model), prep, start, (), activation, force)
         return State(x=new.x, v=new.v, rot=new.rot, t=state.t + h), (state.x, state.v, jnp.asarray(False)), info
 
+    def starts(self, model: Model, prep: Prepared, xs, vs, t0, activation0, force0):
+        h = model.options.dt
+        state0 = State(x=xs[0], v=vs[0], rot=cold_start(deformation_gradient(model, prep.dminv, xs[0])), t=t0)
+        a, _ = accelerations(model, prep, state0, activation0, force0)
+        x_prev = jnp.concatenate([(xs[0] - h * vs[0] + 0.5 * h * h * a)[None], xs[:-2]])
+        v_prev = jnp.concatenate([(vs[0] - h * a)[None], vs[:-2]])
+        times = t0 + h * jnp.arange(xs.shape[0] - 1) + h / 3.0
+        return self._inner(model), (4.0 * xs[:-1] - x_prev) / 3.0, (4.0 * vs[:-1] - v_prev) / 3.0, times
+
 
 def integrator_of(model: Model) -> Integrator:
     """The scene's integrator (``Options.integrator``; ``None`` is implicit Euler)."""
@@ -312,7 +329,8 @@ def contact_forces(model: Model, params: Params, traj: Trajectory, controls=None
     """The contact forces and contact states of every step of a trajectory.
 
     Each step's solution is a fixed point of the contact iteration, at which the force the
-    obstacles exert on a vertex is the step objective's gradient there
+    obstacles exert on a vertex is the step objective's gradient there (each step rebuilt
+    as the scene's integrator built it, ``starts``)
     (:meth:`softbody.contact.Contact.report`); the states are the contact step's decision
     at the solution. Computed from the trajectory (one objective evaluation per step, all
     steps at once), so rollouts carry no contact arrays.
@@ -330,14 +348,10 @@ def contact_forces(model: Model, params: Params, traj: Trajectory, controls=None
         :data:`softbody.contact.CONTACT_STATES` (0: none, 1: stick, 2: slide).
 
     Raises:
-        SceneError: the scene has no obstacles, steps by another integrator than implicit
-            Euler, or shapes that do not fit.
+        SceneError: the scene has no obstacles, or shapes that do not fit.
     """
     if model.step.contact is None:
         raise SceneError("contact_forces needs a scene with obstacles; this one has none")
-    if type(integrator_of(model)) is not ImplicitEuler:
-        raise SceneError("contact_forces recomputes implicit-Euler steps; a scene built with "
-                         f"Options(integrator={type(integrator_of(model)).__name__}()) is not supported yet")
     n_steps = traj.x.shape[0] - 1
     controls, forces, n_steps = _check_controls(model, controls, forces, n_steps)
     return _contact_forces(model, params, traj.x, traj.v, controls, forces, jnp.asarray(t0, jnp.float64))
@@ -345,19 +359,21 @@ def contact_forces(model: Model, params: Params, traj: Trajectory, controls=None
 
 @functools.partial(jax.jit, static_argnums=0)
 def _contact_forces(model, params, xs, vs, controls, forces, t0):
-    prep = prepare(model, params)
+    integrator = integrator_of(model)
+    prep, _ = integrator.init(model, params, State(x=xs[0], v=vs[0], rot=None, t=t0))
+    first = (_activation(model, None if controls is None else controls[0]), None if forces is None else forces[0])
+    solved, x_start, v_start, times = integrator.starts(model, prep, xs, vs, t0, *first)
     free = jnp.asarray(model.free_mask)
-    steps = jnp.arange(xs.shape[0] - 1)
 
-    def one(k, x_n, v_n, x, a, f):
-        q_n = cold_start(deformation_gradient(model, prep.dminv, x_n))
-        state = _step_start(model, prep, State(x=x_n, v=v_n, rot=q_n, t=t0 + k * model.options.dt))
-        problem, _, _, _ = step_problem(model, prep, state, _activation(model, a), f, static=False)
-        q = cold_start(deformation_gradient(model, prep.dminv, jnp.where(free > 0, x, state.x)))
+    def one(x_n, v_n, t, x, a, f):
+        q_n = cold_start(deformation_gradient(solved, prep.dminv, x_n))
+        state = _step_start(solved, prep, State(x=x_n, v=v_n, rot=q_n, t=t))
+        problem, _, _, _ = step_problem(solved, prep, state, _activation(model, a), f, static=False)
+        q = cold_start(deformation_gradient(solved, prep.dminv, jnp.where(free > 0, x, state.x)))
         return model.step.contact.report(problem, model.step.coordinates, x, q)
 
     return jax.vmap(one, in_axes=(0, 0, 0, 0, None if controls is None else 0, None if forces is None else 0))(
-        steps, xs[:-1], vs[:-1], xs[1:], controls, forces)
+        x_start, v_start, times, xs[1:], controls, forces)
 
 
 def _check_controls(model: Model, controls, forces, n_steps):
