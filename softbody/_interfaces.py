@@ -67,7 +67,8 @@ class Actuator:
         """The term of a body in a scene (:func:`softbody.scene.assemble`): the body's
         vertices start at index ``vertices`` of the scene's vertex array and its tets at
         ``tets``; its channels are named ``prefix + name``. The default shifts the
-        attributes named in :attr:`mesh_indices` and prefixes ``channel_names`` (a field).
+        attributes named in :attr:`mesh_indices` and prefixes ``channel_names`` (a field),
+        and returns the term itself where nothing changes.
 
         Raises:
             SceneError: the term acts on no body's mesh (joint actuators act on the
@@ -76,6 +77,8 @@ class Actuator:
         if not self.mesh_indices:
             raise SceneError(f"{type(self).__name__} acts on the scene's skeleton, not on one body's mesh: give "
                              "it to build(..., actuators=[...]), not to SoftBody(actuators=...)")
+        if not prefix and vertices == 0 and tets == 0:
+            return self  # the one unnamed body of a scene: nothing moves or is renamed
         shift = {"vertices": vertices, "tets": tets}
         changes = {key: np.asarray(getattr(self, key)) + shift[kind] for key, kind in self.mesh_indices.items()}
         return dataclasses.replace(self, **changes, channel_names=tuple(prefix + c for c in self.channel_names))

@@ -123,8 +123,7 @@ def explicit_rollout(model: Model, params: Params, state0: State, controls=None,
     if not throw:
         return traj
     return _raise_failure(traj, failed, branch,
-                          _Messages(SymplecticEuler(jnp.asarray(model.options.dt)).templates(model, "explicit_rollout"),
-                                    n_steps))
+                          _Messages(SymplecticEuler(model.options.dt).templates(model, "explicit_rollout"), n_steps))
 
 
 def critical_time_step(model: Model, params: Params, x=None, iterations: int = 300) -> float:

@@ -152,8 +152,7 @@ def build(
         ValueError: bad material values (from :class:`Material`).
     """
     scene = assemble(bodies)
-    mesh, names, mats, tet_material, held = scene.mesh, scene.material_names, scene.materials, \
-        scene.tet_material, scene.held
+    mesh, mats, held = scene.mesh, scene.materials, scene.held
     fixed_idx = np.flatnonzero(held.any(axis=1)).astype(np.int32)
     n = mesh.n_vertices
     free = ~held.any(axis=1)  # vertices with no held component
@@ -200,7 +199,7 @@ def build(
     step = _compose(options, rig, tuple(obstacles))
     options = dataclasses.replace(options, solver=step.solver, contact=step.contact)
     model = Model(
-        mesh=mesh, options=options, material_names=names, tet_material=tet_material,
+        mesh=mesh, options=options, material_names=scene.material_names, tet_material=scene.tet_material,
         fixed=fixed_idx, free_mask=(~held).astype(np.float64) if partial else free.astype(np.float64)[:, None],
         pattern=pattern, local_to_data=local_to_data, diag_to_data=diag_to_data,
         terms=tuple(terms), channel_names=tuple(channels), obstacles=tuple(obstacles),

@@ -269,19 +269,27 @@ class BDF2(ImplicitEuler):
         """The scene whose implicit-Euler step of size ``h' = 2h/3`` is this step."""
         return dataclasses.replace(model, options=dataclasses.replace(model.options, dt=2.0 * model.options.dt / 3.0))
 
+    @staticmethod
+    def _past(model: Model, prep: Prepared, state: State, activation, force):
+        """``(x_{-1}, v_{-1})``: the second-order accurate past of a first step from ``state``."""
+        h = model.options.dt
+        a, _ = accelerations(model, prep, state, activation, force)
+        return state.x - h * state.v + 0.5 * h * h * a, state.v - h * a
+
+    @staticmethod
+    def _blend(now, past):
+        """BDF2's start ``(4 now - past) / 3`` of positions or velocities."""
+        return (4.0 * now - past) / 3.0
+
     def init(self, model: Model, params: Params, state0: State) -> tuple[Prepared, tuple]:
         return prepare(self._inner(model), params), (state0.x, state0.v, jnp.asarray(True))
 
     def step(self, model: Model, prep: Prepared, state: State, memory, activation, force):
         h = model.options.dt
         x_prev, v_prev, first = memory
-
-        def history():  # a second-order accurate past for the first step
-            a, _ = accelerations(model, prep, state, activation, force)
-            return state.x - h * state.v + 0.5 * h * h * a, state.v - h * a
-
-        x_prev, v_prev = jax.lax.cond(first, history, lambda: (x_prev, v_prev))
-        start = State(x=(4.0 * state.x - x_prev) / 3.0, v=(4.0 * state.v - v_prev) / 3.0, rot=state.rot,
+        x_prev, v_prev = jax.lax.cond(first, lambda: self._past(model, prep, state, activation, force),
+                                      lambda: (x_prev, v_prev))
+        start = State(x=self._blend(state.x, x_prev), v=self._blend(state.v, v_prev), rot=state.rot,
                       t=state.t + h / 3.0)
         new, _, info = super().step(self._inner(model), prep, start, (), activation, force)
         return State(x=new.x, v=new.v, rot=new.rot, t=state.t + h), (state.x, state.v, jnp.asarray(False)), info
@@ -289,11 +297,11 @@ class BDF2(ImplicitEuler):
     def starts(self, model: Model, prep: Prepared, xs, vs, t0, activation0, force0):
         h = model.options.dt
         state0 = State(x=xs[0], v=vs[0], rot=cold_start(deformation_gradient(model, prep.dminv, xs[0])), t=t0)
-        a, _ = accelerations(model, prep, state0, activation0, force0)
-        x_prev = jnp.concatenate([(xs[0] - h * vs[0] + 0.5 * h * h * a)[None], xs[:-2]])
-        v_prev = jnp.concatenate([(vs[0] - h * a)[None], vs[:-2]])
+        x_past, v_past = self._past(model, prep, state0, activation0, force0)
+        x_prev = jnp.concatenate([x_past[None], xs[:-2]])
+        v_prev = jnp.concatenate([v_past[None], vs[:-2]])
         times = t0 + h * jnp.arange(xs.shape[0] - 1) + h / 3.0
-        return self._inner(model), (4.0 * xs[:-1] - x_prev) / 3.0, (4.0 * vs[:-1] - v_prev) / 3.0, times
+        return self._inner(model), self._blend(xs[:-1], x_prev), self._blend(vs[:-1], v_prev), times
 
 
 def integrator_of(model: Model) -> Integrator:
@@ -313,7 +321,8 @@ def step(model: Model, prep: Prepared, state: State, activation=None, force=None
     Returns:
         ``(next_state, info)``; ``info.result`` is not set (0): :func:`rollout` sets it.
     """
-    return ImplicitEuler().step(model, prep, state, (), _activation(model, activation), force)[::2]
+    new, _, info = ImplicitEuler().step(model, prep, state, (), _activation(model, activation), force)
+    return new, info
 
 
 def _step_start(model: Model, prep: Prepared, state: State) -> State:
