@@ -74,7 +74,8 @@ class TetMesh:
 
     Attributes:
         points: ``(n, 3)`` float64 vertex positions in metres.
-        tets: ``(t, 4)`` int32 vertex indices, positively oriented (signed volume > 0).
+        tets: ``(t, 4)`` int32 vertex indices, positively oriented (signed volume > 0);
+            ``t = 0`` only with a given ``surface`` (a scene of rigid bodies only).
         surface: ``(f, 3)`` int32 boundary triangles with outward normals. Computed from
             ``tets`` when not given.
         regions: name -> :class:`Region`.
@@ -96,15 +97,16 @@ class TetMesh:
         tets = np.asarray(self.tets)
         if pts.ndim != 2 or pts.shape[1] != 3:
             raise MeshError(f"points must have shape (n, 3), got {pts.shape}")
-        if tets.ndim != 2 or tets.shape[1] != 4 or len(tets) == 0:
-            raise MeshError(f"tets must have shape (t, 4) with t > 0, got {tets.shape}")
+        if tets.ndim != 2 or tets.shape[1] != 4 or (len(tets) == 0 and self.surface is None):
+            raise MeshError(f"tets must have shape (t, 4) with t > 0 (t = 0 only with a given surface: the "
+                            f"scene of rigid bodies), got {tets.shape}")
         if not np.all(np.isfinite(pts)):
             raise MeshError(f"{int((~np.isfinite(pts)).any(axis=1).sum())} points are not finite")
-        if tets.min() < 0 or tets.max() >= len(pts):
+        if tets.size and (tets.min() < 0 or tets.max() >= len(pts)):
             raise MeshError(f"tet indices must lie in [0, {len(pts)}), got [{tets.min()}, {tets.max()}]")
         tets = tets.astype(np.int32)
         vol = signed_volumes(pts, tets)
-        scale = np.abs(vol).max()
+        scale = np.abs(vol).max(initial=0.0)
         inverted = int((vol < 0).sum())
         degenerate = int((np.abs(vol) <= 1e-12 * scale).sum())
         if inverted or degenerate:

@@ -8,7 +8,7 @@
                              options=sb.Options(dt=0.01))
     traj = sb.rollout(model, params, sb.initial_state(model, params), n_steps=50)
 
-Scenes: :func:`build`, :class:`SoftBody`, :func:`prepare`, :func:`initial_state`,
+Scenes: :func:`build`, :class:`SoftBody`, :class:`RigidBody`, :func:`prepare`, :func:`initial_state`,
 :class:`Material`, :class:`Skeleton`, :class:`Fix` (vertices held in chosen components),
 :class:`Options`, :class:`Model`, :class:`Params`, :class:`State`, :class:`SceneError`. A
 scene owns its physics: ``build([SoftBody(mesh, material, fixed=..., actuators=[...]), ...],

@@ -110,6 +110,8 @@ class Params(eqx.Module):
         E, nu, density, alpha, beta: ``(n_materials,)`` per-material values (see
             :class:`~softbody.material.Material`), in the order of ``Model.material_names``.
         morph: ``(n, 3)`` rest-shape offsets added to the mesh's rest positions.
+        rigid_mass: ``(r,)`` the mass of each rigid body (kg), in the order of
+            ``Model.bodies``; its inertia scales with it (the shape is fixed).
         actuators: a tuple with one design-parameter pytree per actuator term.
         obstacles: a tuple with one parameter pytree per obstacle (pose, friction, ...).
     """
@@ -120,6 +122,7 @@ class Params(eqx.Module):
     alpha: Array
     beta: Array
     morph: Array
+    rigid_mass: Array
     actuators: tuple = ()
     obstacles: tuple = ()
 
@@ -241,7 +244,7 @@ class Model:
     @functools.cached_property
     def corner_incidence(self) -> np.ndarray:
         """``(n, K)`` int32: each vertex's tet corners (see :func:`softbody.elastic.corner_incidence`)."""
-        return corner_incidence(self.mesh.tets)
+        return corner_incidence(self.mesh.tets, self.n_vertices)
 
     @functools.cached_property
     def axis_keep(self) -> np.ndarray | None:

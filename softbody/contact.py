@@ -196,6 +196,10 @@ class Contact:
             obstacle; if its result penetrates an obstacle the step is redone with contact.
         adjoint_tol, adjoint_max_iter: relative tolerance and iteration cap of the linear
             solve of the implicit derivative (Anderson-accelerated, like the forward solve).
+        blocks: ``((start, stop), ...)`` vertex ranges whose Anderson coefficients are
+            separate (:func:`softbody.anderson.mix`); :func:`~softbody.model.build` sets one
+            per body in a scene of several, so that bodies that do not touch each other
+            converge as each would alone. ``()``: one set for all.
 
     The PD matrix is prefactored with the true volume weight (``volume_weight = 1``):
     its diagonal defines ``P``.
@@ -213,6 +217,7 @@ class Contact:
     margin: float = 1e-6
     adjoint_tol: float = 1e-10
     adjoint_max_iter: int = 20000
+    blocks: tuple = ()
 
     def __post_init__(self):
         if not isinstance(self.splitting, Splitting):
@@ -230,6 +235,16 @@ class Contact:
             raise ValueError(f"Contact.margin must be a distance >= 0 (m), got {self.margin!r}")
         if not (self.adjoint_tol > 0 and int(self.adjoint_max_iter) >= 1):
             raise ValueError("Contact.adjoint_tol must be > 0 and adjoint_max_iter >= 1")
+        blocks = tuple(tuple(int(i) for i in b) for b in self.blocks)
+        if any(len(b) != 2 or not 0 <= b[0] < b[1] for b in blocks) or (blocks and blocks[0][0] != 0) or any(
+                a[1] != b[0] for a, b in zip(blocks, blocks[1:])):
+            raise ValueError(f"Contact.blocks must be consecutive vertex ranges (start, stop) from 0, got {self.blocks!r}")
+        object.__setattr__(self, "blocks", blocks)
+
+    @property
+    def _flat_blocks(self) -> tuple:
+        """``blocks`` as ranges of the flattened ``(n, 3)`` positions."""
+        return tuple((3 * a, 3 * b) for a, b in self.blocks)
 
     def run(self, problem: StepProblem, coordinates: Coordinates, solver: NonlinearSolver, x0, q0, threshold,
             max_iter: int) -> Solution:
@@ -298,6 +313,7 @@ class Contact:
             history=max(int(self.history), 1),
             rtol=self.adjoint_tol,
             max_iter=self.adjoint_max_iter,
+            blocks=self._flat_blocks,
         )
         return sol._replace(x=fixed_point(position, linear_solve, sol.x, sol.q, *consts))
 
@@ -449,10 +465,11 @@ class Contact:
             best_q = jnp.where(better, q_new, best_q)
             restart = r > self.restart * best_r
             best_r = jnp.where(better, r, best_r)  # a diverging iteration (NaN) keeps the best
-            x_next, hist = anderson.mix(x, gx, weight, hist, restart, self.history)
+            x_next, hist = anderson.mix(x, gx, weight, hist, restart, self.history, self._flat_blocks)
             return x_next, q_new, k + 1, best_x, best_q, best_r, r, hist
 
-        init = (x0, q0, zero, x0, q0, inf, inf, anderson.init(self.history, x0.size, x0.dtype))
+        init = (x0, q0, zero, x0, q0, inf, inf,
+                anderson.init(self.history, x0.size, x0.dtype, max(len(self.blocks), 1)))
         out = jax.lax.while_loop(lambda c: (c[6] > threshold) & (c[2] < max_iter), body, init)
         _, _, k, best_x, best_q, best_r, _, _ = out
         return Solution(best_x, best_q, k, k, best_r)

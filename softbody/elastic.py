@@ -41,20 +41,20 @@ def deformation_gradient(model, dminv: Array, x: Array) -> Array:
     return rot.matmul(_edges(model, x), dminv)
 
 
-def corner_incidence(tets: np.ndarray) -> np.ndarray:
+def corner_incidence(tets: np.ndarray, n: int) -> np.ndarray:
     """Each vertex's tet corners: ``(n, K)`` int32 flat indices ``a * t + e`` (corner ``a`` of
-    tet ``e``; ``K`` the largest valence), padded with ``4 t``.
+    tet ``e``; ``K`` the largest valence, at least 1), padded with ``4 t``.
 
     Arguments:
-        tets: ``(t, 4)`` vertex indices; every vertex ``0 .. n - 1`` with ``n = tets.max() + 1``.
+        tets: ``(t, 4)`` vertex indices in ``[0, n)``; n: the number of vertices (those of
+            rigid bodies are in no tet).
     """
     t = len(tets)
     flat = np.asarray(tets, np.int64).T.reshape(-1)  # position a * t + e holds tets[e, a]
-    n = int(flat.max()) + 1 if flat.size else 0
     valence = np.bincount(flat, minlength=n)
     order = np.argsort(flat, kind="stable")
     rank = np.arange(flat.size) - np.repeat(np.cumsum(valence) - valence, valence)
-    table = np.full((n, int(valence.max(initial=0))), 4 * t, np.int32)
+    table = np.full((n, int(valence.max(initial=1))), 4 * t, np.int32)
     table[flat[order], rank] = order
     return table
 

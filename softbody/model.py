@@ -22,6 +22,7 @@ import numpy as np
 
 from softbody import linsolve, rotation
 from softbody._interfaces import Actuator, ElementActuator, Integrator
+from softbody.rigid import RigidBody
 from softbody.scene import SoftBody, assemble
 from softbody._types import Model, Options, Params, Prepared, SceneError, State
 from softbody.contact import Contact
@@ -57,13 +58,28 @@ def clamp(model: Model, x, x_rest, time):
     return x
 
 
-def _rig(mesh, skeleton, free: np.ndarray) -> Rig | None:
-    """The skeleton bound to the mesh (``None`` without one), with no fixed bone vertex."""
-    if skeleton is None:
+def _rig(mesh, skeleton, free: np.ndarray, scene) -> Rig | None:
+    """The skeleton bound to the mesh, with a root link per rigid body (``None`` with neither),
+    and no fixed bone vertex."""
+    if skeleton is None and not scene.links:
         return None
-    if not isinstance(skeleton, Skeleton):
+    if skeleton is not None and not isinstance(skeleton, Skeleton):
         raise SceneError(f"skeleton must be a softbody.skeleton.Skeleton, got {type(skeleton).__name__}")
-    rig = skeleton.bind(mesh)
+    links = () if skeleton is None else skeleton.links
+    for link in links:
+        for part in scene.parts:
+            if part.rigid is None:
+                continue
+            if link.name == part.name:
+                raise SkeletonError(f"link {link.name!r} has the name of rigid body {part.name!r}, whose own link "
+                                    "it is; rename the link")
+            region = mesh.regions.get(link.bone)
+            if region is not None and np.any((region.vertices >= part.vertices[0])
+                                             & (region.vertices < part.vertices[1])):
+                raise SkeletonError(f"link {link.name!r}: bone region {link.bone!r} holds vertices of rigid body "
+                                    f"{part.name!r}; a rigid body moves by its own 6 dofs and cannot be a bone: "
+                                    "make the bone a region of a soft body")
+    rig = (skeleton if not scene.links else Skeleton((*links, *scene.links))).bind(mesh)
     if not np.all(free[rig.bone]):
         raise SkeletonError("some bone vertices are fixed; bones move with their joints (weld a bone to the "
                             "world with a root Fixed() joint instead)")
@@ -81,7 +97,7 @@ def _check_partial(skeleton, obstacles) -> None:
                          "obstacle (softbody.obstacles.Plane) or clamp the vertices fully")
 
 
-def _compose(options: Options, rig: Rig | None, obstacles: tuple) -> Step:
+def _compose(options: Options, rig: Rig | None, obstacles: tuple, parts: tuple) -> Step:
     """The step of a scene: its coordinates, its contact constraint and the solver, checked
     together (every refusal here happens before anything compiles)."""
     coordinates = Vertices() if rig is None else Reduced(rig)
@@ -109,6 +125,12 @@ def _compose(options: Options, rig: Rig | None, obstacles: tuple) -> Step:
                          "differentiated through the fixed point of its contact iteration "
                          "(softbody.fixed_point); use the default adjoint, Implicit() (or ImplicitForward())")
     contact = (options.contact or Contact()) if obstacles else None
+    if contact is not None and len(parts) > 1 and not contact.blocks:
+        contact = dataclasses.replace(contact, blocks=tuple(part.vertices for part in parts))
+    n = parts[-1].vertices[1]
+    if contact is not None and contact.blocks and contact.blocks[-1][1] != n:
+        raise SceneError(f"Contact.blocks must end at the scene's {n} vertices, got {contact.blocks!r}; leave it at "
+                         "() for build to set one block per body")
     if contact is not None and rig is not None and contact.active_set is not None:
         raise SceneError("Contact(active_set=...) works in vertex coordinates; a scene with a skeleton has "
                          "reduced coordinates, whose contact steps run the splitting alone: use "
@@ -117,7 +139,7 @@ def _compose(options: Options, rig: Rig | None, obstacles: tuple) -> Step:
 
 
 def build(
-    bodies: SoftBody | Sequence[SoftBody],
+    bodies: SoftBody | RigidBody | Sequence[SoftBody | RigidBody],
     *,
     skeleton: Skeleton | None = None,
     actuators: Sequence = (),
@@ -132,7 +154,10 @@ def build(
             :mod:`softbody.scene`). They are concatenated into one vertex array, in order.
             Partly held vertices are refused with a skeleton or obstacles; implicit steps
             (:func:`~softbody.simulate.step`, rollouts, policies) follow a body's
-            ``motion``, the explicit and Newton reference integrators refuse it.
+            ``motion``, the explicit and Newton reference integrators refuse it. A
+            :class:`~softbody.rigid.RigidBody` (always named) joins as a 6-dof root link of
+            the scene's reduced coordinates (see :mod:`softbody.scene`); its mass is
+            ``params.rigid_mass``. Rigid bodies take no part in contact yet.
         skeleton: a :class:`~softbody.skeleton.Skeleton` over ``bone:`` regions of the
             scene's mesh, or ``None``; the scene then steps in its reduced coordinates
             (``model.rig`` is the skeleton bound to the mesh).
@@ -145,10 +170,11 @@ def build(
         ``(model, params)``.
 
     Raises:
-        SceneError: no bodies, repeated or missing body names, unknown regions, an empty
+        SceneError: rigid bodies with obstacles, no bodies, repeated or missing body names, unknown regions, an empty
             fixed selection, actuators with no tets or in the wrong place, a combination
             of scene and options that the step does not support, ...
-        SkeletonError: a skeleton that does not fit the mesh, or a fixed bone vertex.
+        SkeletonError: a skeleton that does not fit the mesh, a fixed bone vertex, or a bone
+            in a rigid body.
         ValueError: bad material values (from :class:`Material`).
     """
     scene = assemble(bodies)
@@ -177,7 +203,11 @@ def build(
     if partial:
         _check_partial(skeleton, obstacles)
 
-    rig = _rig(mesh, skeleton, free)
+    rig = _rig(mesh, skeleton, free, scene)
+    rigid = tuple(part for part in scene.parts if part.rigid is not None)
+    if rigid and obstacles:
+        raise SceneError(f"rigid bodies {[p.name for p in rigid]} do not take part in contact yet: build the scene "
+                         "without obstacles, or model the object as a stiff SoftBody")
     for i, term in enumerate(actuators):
         if not isinstance(term, Actuator):
             raise SceneError(f"actuators[{i}] is a {type(term).__name__}, not an actuator; give the skeleton's "
@@ -196,7 +226,7 @@ def build(
     if partial and not isinstance(linear_solver, linsolve.PerColumn):
         linear_solver = linsolve.PerColumn(linear_solver)
     options = dataclasses.replace(options, linear_solver=linear_solver, adjoint=adjoint)
-    step = _compose(options, rig, tuple(obstacles))
+    step = _compose(options, rig, tuple(obstacles), scene.parts)
     options = dataclasses.replace(options, solver=step.solver, contact=step.contact)
     model = Model(
         mesh=mesh, options=options, material_names=scene.material_names, tet_material=scene.tet_material,
@@ -212,16 +242,28 @@ def build(
         alpha=jnp.asarray([m.alpha for m in mats], jnp.float64),
         beta=jnp.asarray([m.beta for m in mats], jnp.float64),
         morph=jnp.zeros((n, 3), jnp.float64),
+        rigid_mass=jnp.asarray([p.rigid.mass for p in rigid], jnp.float64),
         actuators=tuple(term.init_params() for term in terms),
         obstacles=tuple(ob.init_params() for ob in obstacles),
     )
     return model, params
 
 
+def _rigid_velocities(model: Model) -> Array:
+    """``(n, 3)``: the rigid bodies' initial velocities ``v0 + omega0 x (x - x0)`` on their
+    vertices (at their initial placement), zero elsewhere."""
+    v = np.zeros((model.n_vertices, 3))
+    for part in model.bodies:
+        if part.rigid is not None:
+            body, (start, stop) = part.rigid, part.vertices
+            v[start:stop] = body.v0 + np.cross(body.omega0, model.mesh.points[start:stop] - body.x0)
+    return jnp.asarray(v)
+
+
 def initial_state(model: Model, params: Params | None = None, x=None, v=None) -> State:
-    """A state at the rest shape (or at ``x``), with velocities ``v`` (default zero). With a
-    prescribed ``motion`` the fixed vertices of the rest shape start where it puts them at
-    ``t = 0``.
+    """A state at the rest shape (or at ``x``), with velocities ``v`` (default: zero on soft
+    bodies, each rigid body's ``v0`` and ``omega0``). With a prescribed ``motion`` the fixed
+    vertices of the rest shape start where it puts them at ``t = 0``.
 
     Arguments:
         model: the compiled scene.
@@ -239,7 +281,7 @@ def initial_state(model: Model, params: Params | None = None, x=None, v=None) ->
     if x is None and model.moving:
         rest = clamp(model, rest, rest, 0.0)
     x = rest if x is None else jnp.asarray(x, jnp.float64)
-    v = jnp.zeros((n, 3)) if v is None else jnp.asarray(v, jnp.float64)
+    v = _rigid_velocities(model) if v is None else jnp.asarray(v, jnp.float64)
     for name, a in (("x", x), ("v", v)):
         if a.shape != (n, 3):
             raise SceneError(f"initial {name} must have shape ({n}, 3), got {a.shape}")
@@ -268,6 +310,13 @@ def prepare(model: Model, params: Params, *, static: bool = False) -> Prepared:
     tets = jnp.asarray(model.mesh.tets)
     quarter = (params.density[mat] * volume / 4.0)[:, None].repeat(4, axis=1)
     mass = jnp.zeros(model.n_vertices).at[tets].add(quarter)
+    rigid = [part for part in model.bodies if part.rigid is not None]
+    if rigid and static:
+        raise SceneError(f"rigid bodies {[p.name for p in rigid]} are free: a static solve has no equilibrium for "
+                         "them (their stiffness is zero); simulate the scene in time instead")
+    for j, part in enumerate(rigid):
+        start, stop = part.vertices
+        mass = mass.at[start:stop].add(params.rigid_mass[j] * jnp.asarray(part.mass_share))
     mass_alpha = jnp.zeros(model.n_vertices).at[tets].add(quarter * params.alpha[mat][:, None])
     x_rest = jnp.asarray(model.mesh.points) + params.morph
 

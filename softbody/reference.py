@@ -335,13 +335,21 @@ def newton_step(model: Model, params: Params, state: State, activation=None, for
 
 
 def _check_step_inputs(model: Model, activation, force):
-    if model.moving:
-        raise SceneError("the Newton reference keeps fixed vertices in place: build the scene's bodies without "
-                         "motion= (SoftBody(..., motion=None))")
+    _check_scene(model)
     if activation is not None and jnp.shape(activation) != (model.n_channels,):
         raise SceneError(f"activation must have shape ({model.n_channels},), got {jnp.shape(activation)}")
     if force is not None and jnp.shape(force) != (model.n_vertices, 3):
         raise SceneError(f"force must have shape ({model.n_vertices}, 3), got {jnp.shape(force)}")
+
+
+def _check_scene(model: Model):
+    """Refuse the scenes the Newton reference does not integrate."""
+    if model.rig is not None:
+        raise SceneError("the Newton reference moves every vertex freely: a scene with a skeleton or rigid bodies "
+                         "(reduced coordinates) steps with softbody.simulate.rollout")
+    if model.moving:
+        raise SceneError("the Newton reference keeps fixed vertices in place: build the scene's bodies without "
+                         "motion= (SoftBody(..., motion=None))")
 
 
 def _newton_step(model, prep, state, activation, force, tol, max_iter):
@@ -377,6 +385,7 @@ def newton_rollout(model: Model, params: Params, state0: State, n_steps: int | N
         ValueError: ``tol <= 0`` or ``max_iter < 1``.
         SimulationError: a step that fails (see :func:`newton_step`), naming the step.
     """
+    _check_scene(model)
     controls, forces, n_steps = _check_controls(model, controls, forces, n_steps)
     prep = prepare(model, params)
     state, xs, vs, stats = state0, [state0.x], [state0.v], []

@@ -327,3 +327,39 @@ class RigidBody:
         x = self.x0 if x is None else _vector(x, "x")
         R = self.R0 if R is None else _rotation(R, "R")
         return x + (self.points - self.centre) @ R.T
+
+    def scene_vertices(self) -> tuple[np.ndarray, np.ndarray]:
+        """The vertices a scene gives this body, at its initial placement, and each one's
+        share of the mass.
+
+        A scene moves a rigid body as a 6-dof root of its skeleton (see
+        :mod:`softbody.scene`) and stores it as vertices with lumped masses: its surface
+        vertices, then six interior points. The shares are chosen so that the lumped
+        masses have *exactly* the body's mass, centre of mass and inertia tensor: the
+        surface vertices carry a fraction ``eps`` of the mass equally (so that every vertex
+        has a mass, as contact needs), and the six interior points ``c + delta +- d_k e_k``
+        carry the rest, ``delta`` cancelling the surface vertices' first moment and
+        ``(d_k, e_k)`` the principal values and axes of the second moment left over,
+        ``S - eps T - (1 - eps) delta delta^T`` with ``S = tr(I)/2 - I`` the solid's second
+        moment per unit mass (``I`` the inertia per unit mass) and ``T`` the surface
+        vertices'. ``eps = min(0.1, lambda_min(S) / (4 lambda_max(T)))`` keeps that
+        leftover positive definite (at least half of ``S``'s smallest eigenvalue).
+
+        Returns:
+            ``(points (n_s + 6, 3), share (n_s + 6,))``: positions (surface vertices in
+            this body's order, then the interior points) and shares summing to 1.
+        """
+        centre, unit = self.centre, self.inertia / self.mass
+        spread = np.trace(unit) / 2 * np.eye(3) - unit  # S: second moment per unit mass about the centre
+        r = self.points - centre
+        first = r.mean(axis=0)
+        surface = r.T @ r / len(r)  # T, about the centre
+        eps = min(0.1, float(np.linalg.eigvalsh(spread)[0] / (4 * np.linalg.eigvalsh(surface)[-1])))
+        delta = -eps / (1 - eps) * first
+        rest = spread - eps * surface - (1 - eps) * np.outer(delta, delta)
+        values, axes = np.linalg.eigh((rest + rest.T) / 2)
+        reach = np.sqrt(3 * values / (1 - eps)) * axes  # column k: d_k e_k
+        inner = delta + np.concatenate([reach.T, -reach.T])
+        local = np.concatenate([r, inner])
+        share = np.concatenate([np.full(len(r), eps / len(r)), np.full(6, (1 - eps) / 6)])
+        return self.x0 + local @ self.R0.T, share

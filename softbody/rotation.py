@@ -308,7 +308,7 @@ def cold_start(f: Mat, iterations: int = 12) -> Quat:
     def step(c):
         x, _, k = c
         y = higham(k, x)
-        change = jnp.max(jnp.sqrt(dot(y - x, y - x) / (dot(y, y) + 1e-300)))
+        change = jnp.max(jnp.sqrt(dot(y - x, y - x) / (dot(y, y) + 1e-300)), initial=0.0)
         return y, change, k + 1
 
     x, _, _ = jax.lax.while_loop(unconverged, step, (f, jnp.asarray(jnp.inf, f.dtype), 0))

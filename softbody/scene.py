@@ -4,17 +4,24 @@ A scene is a list of bodies plus what acts between them (a skeleton, obstacles, 
 actuators: the arguments of :func:`softbody.model.build`). A :class:`SoftBody` is a tet
 mesh with its materials, its held vertices (:class:`Fix`), their prescribed motion and the
 actuators on its elements, all given in the body's own terms (its region names, its
-vertex and tet indices). :func:`assemble` concatenates the bodies into one
-:class:`~softbody.meshing.TetMesh`, so the PD matrix stays one scalar ``n x n`` matrix,
-factorised once, and every solver, adjoint and the skeleton's condensation apply
-unchanged. Bodies touch each other only through what acts between them.
+vertex and tet indices). A :class:`~softbody.rigid.RigidBody` is a closed surface with
+a mass: it joins the scene as its surface vertices and six interior points whose lumped
+masses have exactly its mass, centre of mass and inertia
+(:meth:`~softbody.rigid.RigidBody.scene_vertices`), no tets, and moves as a 6-dof root
+link of the scene's skeleton (a :class:`~softbody.skeleton.Free` joint about its centre
+of mass, the link and its bone region named after the body). :func:`assemble`
+concatenates the bodies into one :class:`~softbody.meshing.TetMesh`, so the PD matrix
+stays one scalar ``n x n`` matrix, factorised once, and every solver, adjoint and the
+skeleton's condensation apply unchanged. Bodies touch each other only through what acts
+between them.
 
 Names: a body's ``name`` qualifies what it brings to the scene: its regions are
 ``"<name>/<region>"`` in the scene's mesh, which also has a region ``"<name>"`` with all of
 the body's vertices, tets and surface faces; its materials are ``"<name>/<region>"``
 (``"<name>/default"`` for the rest of the body); its actuator channels are
-``"<name>/<channel>"``. A scene of one body may leave it unnamed: the scene's mesh is then
-the body's own, with its names unchanged.
+``"<name>/<channel>"``. A scene of one soft body may leave it unnamed: the scene's mesh is
+then the body's own, with its names unchanged. Rigid bodies are always named: their name
+is their region, link and bone.
 """
 
 from __future__ import annotations
@@ -30,6 +37,8 @@ from softbody.material import Material
 from softbody.meshing import TetMesh
 from softbody.meshing.mesh import Region
 from softbody.obstacles import check_motion
+from softbody.rigid import RigidBody
+from softbody.skeleton import Free, Link
 
 AXES = "xyz"
 
@@ -119,6 +128,9 @@ class BodyPart:
         tets: ``(start, stop)``: its tets.
         fixed: ``(k,)`` int32 scene indices of its vertices with a held component.
         motion: its held vertices' prescribed motion ``t -> (R, p)``, or ``None``.
+        rigid: the :class:`~softbody.rigid.RigidBody` for a rigid body, else ``None``.
+        mass_share: a rigid body's ``(stop - start,)`` share of its mass per vertex (see
+            :meth:`~softbody.rigid.RigidBody.scene_vertices`), else ``None``.
     """
 
     name: str | None
@@ -126,6 +138,8 @@ class BodyPart:
     tets: tuple[int, int]
     fixed: np.ndarray
     motion: Callable | None = None
+    rigid: RigidBody | None = None
+    mass_share: np.ndarray | None = None
 
 
 class Assembly(NamedTuple):
@@ -138,6 +152,7 @@ class Assembly(NamedTuple):
     held: np.ndarray  # (n, 3) bool: the held components of every vertex
     terms: tuple[Actuator, ...]  # the bodies' actuator terms, on the scene's indices
     parts: tuple[BodyPart, ...]
+    links: tuple[Link, ...]  # one Free root link per rigid body
 
 
 def _selection(mesh: TetMesh, where) -> np.ndarray:
@@ -202,21 +217,25 @@ def _materials(mesh: TetMesh, material) -> tuple[list[str], list[Material], np.n
     return names, mats, tet_material
 
 
-def _bodies(bodies) -> tuple[SoftBody, ...]:
-    """The scene's bodies as a tuple, checked: at least one, unique names, names where several."""
-    bodies = (bodies,) if isinstance(bodies, SoftBody) else bodies
+def _bodies(bodies) -> tuple[SoftBody | RigidBody, ...]:
+    """The scene's bodies as a tuple, checked: at least one, unique names, names where several
+    and on every rigid body."""
+    bodies = (bodies,) if isinstance(bodies, (SoftBody, RigidBody)) else bodies
     if isinstance(bodies, TetMesh):
         raise SceneError("build takes bodies, not a mesh: wrap it, build(SoftBody(mesh, material, fixed=...))")
     try:
         bodies = tuple(bodies)
     except TypeError:
-        raise SceneError(f"build takes a SoftBody or a list of them, got {type(bodies).__name__}") from None
+        raise SceneError(f"build takes a SoftBody or RigidBody or a list of them, got {type(bodies).__name__}") from None
     if not bodies:
         raise SceneError("a scene needs at least one body: build(SoftBody(mesh, material))")
     for i, body in enumerate(bodies):
-        if not isinstance(body, SoftBody):
-            raise SceneError(f"bodies[{i}] is a {type(body).__name__}, not a SoftBody; wrap meshes as "
+        if not isinstance(body, (SoftBody, RigidBody)):
+            raise SceneError(f"bodies[{i}] is a {type(body).__name__}, not a SoftBody or RigidBody; wrap meshes as "
                              "SoftBody(mesh, material, name=...)")
+        if isinstance(body, RigidBody) and (not body.name or "/" in body.name):
+            raise SceneError(f"bodies[{i}] is a rigid body named {body.name!r}: a rigid body in a scene needs a "
+                             "name without '/' (its region, link and bone): RigidBody(surface, mass=..., name='box')")
     names = [b.name for b in bodies]
     if len(bodies) > 1 and None in names:
         raise SceneError(f"a scene of {len(bodies)} bodies names each of them: SoftBody(..., name='arm'); "
@@ -231,55 +250,82 @@ def _qualify(name: str | None, item: str) -> str:
     return item if name is None else f"{name}/{item}"
 
 
-def _mesh(bodies: tuple[SoftBody, ...], starts: np.ndarray, tet_starts: np.ndarray) -> TetMesh:
+class _Piece(NamedTuple):
+    """What one body brings to the scene's mesh, in its own indices."""
+
+    points: np.ndarray  # (n, 3)
+    tets: np.ndarray  # (t, 4)
+    surface: np.ndarray  # (f, 3)
+    regions: Mapping[str, Region]
+    fields: Mapping[str, np.ndarray]
+
+
+def _piece(body: SoftBody | RigidBody) -> _Piece:
+    if isinstance(body, RigidBody):
+        points, _ = body.scene_vertices()
+        return _Piece(points, np.zeros((0, 4), np.int64), body.triangles, {}, {})
+    mesh = body.mesh
+    return _Piece(mesh.points, mesh.tets, np.asarray(mesh.surface), mesh.regions, mesh.fields)
+
+
+def _mesh(bodies, pieces: list[_Piece], starts: np.ndarray, tet_starts: np.ndarray) -> TetMesh:
     """The scene's mesh: the bodies' vertices and tets in order, regions qualified by body name."""
     if len(bodies) == 1 and bodies[0].name is None:
         return bodies[0].mesh
     regions, fields = {}, {}
-    for body, v0, t0 in zip(bodies, starts, tet_starts):
-        mesh = body.mesh
-        regions[body.name] = Region(np.arange(mesh.n_vertices) + v0, np.arange(mesh.n_tets) + t0,
-                                    np.asarray(mesh.surface) + v0)
-        for key, reg in mesh.regions.items():
+    for body, piece, v0, t0 in zip(bodies, pieces, starts, tet_starts):
+        regions[body.name] = Region(np.arange(len(piece.points)) + v0, np.arange(len(piece.tets)) + t0,
+                                    piece.surface + v0)
+        for key, reg in piece.regions.items():
             regions[_qualify(body.name, key)] = Region(reg.vertices + v0, reg.tets + t0, reg.faces + v0)
-    for key in {k for b in bodies for k in b.mesh.fields}:
-        shapes = {np.asarray(b.mesh.fields[key]).shape[1:] for b in bodies if key in b.mesh.fields}
+    for key in {k for piece in pieces for k in piece.fields}:
+        shapes = {np.asarray(p.fields[key]).shape[1:] for p in pieces if key in p.fields}
         if len(shapes) > 1:
             raise SceneError(f"the bodies' meshes have field {key!r} with different shapes per tet {sorted(shapes)}; "
                              "rename it in one of them")
         shape = shapes.pop()
         # A body without the field gets zeros (nothing reads it there: its actuators are its own).
-        fields[key] = np.concatenate([np.asarray(b.mesh.fields[key], np.float64) if key in b.mesh.fields
-                                      else np.zeros((b.mesh.n_tets, *shape)) for b in bodies])
-    return TetMesh(np.concatenate([b.mesh.points for b in bodies]),
-                   np.concatenate([b.mesh.tets + v0 for b, v0 in zip(bodies, starts)]),
-                   np.concatenate([b.mesh.surface + v0 for b, v0 in zip(bodies, starts)]), regions, fields)
+        fields[key] = np.concatenate([np.asarray(p.fields[key], np.float64) if key in p.fields
+                                      else np.zeros((len(p.tets), *shape)) for p in pieces])
+    return TetMesh(np.concatenate([p.points for p in pieces]),
+                   np.concatenate([p.tets + v0 for p, v0 in zip(pieces, starts)]),
+                   np.concatenate([p.surface + v0 for p, v0 in zip(pieces, starts)]), regions, fields)
 
 
-def assemble(bodies: SoftBody | Sequence[SoftBody]) -> Assembly:
+def assemble(bodies: SoftBody | RigidBody | Sequence[SoftBody | RigidBody]) -> Assembly:
     """Concatenate a scene's bodies into one vertex array.
 
     Arguments:
-        bodies: one :class:`SoftBody` or a sequence of them.
+        bodies: one :class:`SoftBody` or :class:`~softbody.rigid.RigidBody`, or a sequence
+            of them.
 
     Returns:
         An :class:`Assembly`: the scene's mesh (bodies in the given order, names qualified
         as the module docstring says), its materials, the ``(n, 3)`` held components, the
-        actuator terms on the scene's indices and each body's :class:`BodyPart`.
+        actuator terms on the scene's indices, each body's :class:`BodyPart` and the root
+        link of each rigid body.
 
     Raises:
-        SceneError: no bodies, something that is not a ``SoftBody``, missing or repeated
-            names, unknown regions, an empty fixed selection, a motion without held
+        SceneError: no bodies, something that is not a body, missing or repeated names (a
+            rigid body always needs one), unknown regions, an empty fixed selection, a motion without held
             vertices or not of the form ``t -> (R, p)``, joint actuators in a body,
             repeated channel names.
     """
     bodies = _bodies(bodies)
-    sizes = np.array([b.mesh.n_vertices for b in bodies])
-    tet_sizes = np.array([b.mesh.n_tets for b in bodies])
+    pieces = [_piece(body) for body in bodies]
+    sizes = np.array([len(p.points) for p in pieces])
+    tet_sizes = np.array([len(p.tets) for p in pieces])
     starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
     tet_starts = np.concatenate([[0], np.cumsum(tet_sizes)[:-1]])
-    names, mats, tet_material, held, terms, parts = [], [], [], [], [], []
-    for body, v0, t0 in zip(bodies, starts, tet_starts):
+    names, mats, tet_material, held, terms, parts, links = [], [], [], [], [], [], []
+    for body, v0, t0, size, tet_size in zip(bodies, starts, tet_starts, sizes, tet_sizes):
+        span = (int(v0), int(v0 + size)), (int(t0), int(t0 + tet_size))
+        if isinstance(body, RigidBody):
+            held.append(np.zeros((size, 3), bool))
+            parts.append(BodyPart(body.name, *span, np.zeros(0, np.int32), rigid=body,
+                                  mass_share=body.scene_vertices()[1]))
+            links.append(Link(body.name, body.name, None, Free(origin=tuple(body.x0))))
+            continue
         body_names, body_mats, body_tet_material = _materials(body.mesh, body.material)
         tet_material.append(body_tet_material + len(names))
         names.extend(_qualify(body.name, m) for m in body_names)
@@ -294,7 +340,7 @@ def assemble(bodies: SoftBody | Sequence[SoftBody]) -> Assembly:
                 raise SceneError(f"the motion of {who} moves its held vertices, but it has none: give the body "
                                  "fixed=...")
         terms.extend(term.placed(_qualify(body.name, ""), int(v0), int(t0)) for term in body.actuators)
-        parts.append(BodyPart(body.name, (int(v0), int(v0 + body.mesh.n_vertices)),
-                              (int(t0), int(t0 + body.mesh.n_tets)), fixed, body.motion))
-    return Assembly(_mesh(bodies, starts, tet_starts), tuple(names), mats, np.concatenate(tet_material),
-                    np.concatenate(held), tuple(terms), tuple(parts))
+        parts.append(BodyPart(body.name, *span, fixed, body.motion))
+    return Assembly(_mesh(bodies, pieces, starts, tet_starts), tuple(names), mats,
+                    np.concatenate(tet_material) if tet_material else np.zeros(0, np.int32),
+                    np.concatenate(held), tuple(terms), tuple(parts), tuple(links))

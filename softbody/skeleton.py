@@ -307,6 +307,8 @@ class Rig:
         is_bone: ``(n, 1)`` 1.0 on bone vertices, 0.0 elsewhere.
         vertex_link: ``(n_b,)`` link index of each bone vertex.
         rest: ``(n_b, 3)`` rest positions of the bone vertices.
+        detached_dofs: ``(n_dofs,)`` 1.0 on the dofs of free bodies (a :class:`Free` root
+            with no children whose vertices are in no tet: a rigid body), else 0.0.
         n_vertices: vertices of the mesh.
 
     Raises:
@@ -373,6 +375,12 @@ class Rig:
                 if joint.limits is not None:
                     lo[dof_start[i]], hi[dof_start[i]] = joint.limits
         scalar = np.asarray(scalar, np.int64)
+        # The dofs of free bodies: Free roots with no children whose vertices are in no
+        # tet (rigid bodies). Nothing elastic couples them, so the reduced PD matrix holds
+        # their block exactly (to the rotations' second order).
+        in_tets = np.isin(np.concatenate(bone), mesh.tets)
+        detached = np.array([isinstance(link.joint, Free) and not np.any(parent == i)
+                             and not in_tets[vertex_link == i].any() for i, link in enumerate(links)])
         one_hot = np.zeros((len(vertex_link), n_links))
         one_hot[np.arange(len(vertex_link)), vertex_link] = 1.0
         for name, value in dict(
@@ -384,7 +392,7 @@ class Rig:
                 free_links=[i for i, link in enumerate(links) if isinstance(link.joint, Free)],
                 scalar_links=scalar, scalar_coords=coord_start[scalar], scalar_dofs=dof_start[scalar],
                 rot_axis=rot_axis, slide_axis=slide_axis, origin=origin,
-                lower=lo, upper=hi, n_vertices=mesh.n_vertices,
+                lower=lo, upper=hi, n_vertices=mesh.n_vertices, detached_dofs=np.repeat(detached, n_dofs).astype(float),
                 is_bone=np.isin(np.arange(mesh.n_vertices), np.concatenate(bone))[:, None].astype(float)).items():
             object.__setattr__(self, name, value)
 
@@ -988,8 +996,14 @@ class Reduced(Coordinates):
                 unrolled is not False)
             g_z_new, locked, gnorm = reduced(g_new, pose_new, z_new)
             if m:
-                lbfgs = store_pair(lbfgs, flat(x_new - x, rig.step_taken(z, z_new, -alpha * d_z)),
-                                   flat(g_new - g, g_z_new - g_z))
+                # The pairs leave out the free bodies' dofs, whose block the reduced PD solve
+                # holds exactly (a free rigid body converges in one iteration, to 1e-17): their
+                # later steps and gradient changes are round-off, which would set the quasi-
+                # Newton matrix on them at random, and reverse mode through 1 / (s . y) of
+                # round-off blows up (an unrolled solve beside a soft body).
+                keep = 1.0 - rig.detached_dofs
+                lbfgs = store_pair(lbfgs, flat(x_new - x, rig.step_taken(z, z_new, -alpha * d_z) * keep),
+                                   flat(g_new - g, (g_z_new - g_z) * keep))
             return (x_new, z_new, q, phi, g_new, pose_new, g_z_new, locked, gnorm, evals + 1 + tries, k + 1,
                     lbfgs)
 

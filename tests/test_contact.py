@@ -251,6 +251,9 @@ def test_contact_rejects_bad_settings_and_mismatched_parameters():
         Contact(history=-1)
     with pytest.raises(ValueError, match="scale"):
         ScaledDiagonal(0.0)
+    for blocks in (((1, 4),), ((0, 2), (3, 4)), ((0, 0),), ((0, 2, 4),)):
+        with pytest.raises(ValueError, match="consecutive vertex ranges"):
+            Contact(blocks=blocks)
     x = jnp.zeros((4, 3))
     problem = StepProblem(
         evaluate=None,
