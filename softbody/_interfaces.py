@@ -20,7 +20,7 @@ Every actuator has named control channels, each with the range of values it acce
 from __future__ import annotations
 
 import dataclasses
-from typing import ClassVar, Mapping
+from typing import Callable, ClassVar, Mapping, NamedTuple
 
 import numpy as np
 
@@ -151,21 +151,54 @@ class Coordinates:
         coordinates; returns a :class:`softbody.solvers.Solution`."""
         raise NotImplementedError
 
-    def contact_sweep(self, problem, p):
+    def contact_sweep(self, problem, p, law) -> "ContactSweep":
         """The parts of the contact splitting iteration that depend on the coordinates.
 
         Arguments:
             problem: the step's :class:`softbody.solvers.StepProblem`.
             p: ``(n, 1)`` the splitting's sweep diagonal ``M/h^2 + D``.
+            law: the per-vertex contact step on some vertices, ``(y (c, 3), index (c,),
+                valid (c,), kinetic=False) -> (touching (c,), stick (c,), correction (c, 3),
+                normal (c, 3))`` for trial positions ``y`` of the scene's vertices ``index``
+                (see :class:`softbody.contact.Contact`), for coordinates whose own unknowns
+                touch obstacles; ``kinetic=True``: vertices sliding at the step's start
+                (``softbody.contact.SLIDING_SPEED``) meet the kinetic cone only.
 
         Returns:
-            ``(touching, place, sweep)``: ``touching`` ``(n, 1)`` marks the vertices that
-            the per-vertex contact step moves; ``place(x) -> (x, aux)`` puts an iterate
-            on the coordinates' manifold; ``sweep(x, x_new, g, aux) -> (x_new, r2)``
-            moves the remaining unknowns by their block of the splitting and returns
-            their squared residual ``r2``.
+            A :class:`ContactSweep`.
         """
         raise NotImplementedError
+
+
+class ContactSweep(NamedTuple):
+    """What the contact iteration needs from a step's coordinates
+    (:meth:`Coordinates.contact_sweep`).
+
+    The iterate of the contact iteration is ``X`` ``(n + e, 3)``: the positions, then
+    ``e`` rows of the coordinates' own (the contact forces on vertices that the per-vertex
+    step does not move, each row belonging to one vertex).
+
+    Attributes:
+        touching: ``(n, 1)`` marks the vertices that the per-vertex contact step moves.
+        place: ``X -> (x, aux)`` puts an iterate's positions ``(n, 3)`` on the
+            coordinates' manifold.
+        sweep: ``(X, x_new, g, aux) -> (X_new, r)`` moves the remaining unknowns by their
+            block of the splitting (``x_new`` holds the per-vertex step's new positions)
+            and returns the new iterate and the residual ``r`` (forces, N) of the
+            remaining unknowns.
+        owners: ``(e,)`` static ints, the vertex of each extra row.
+        scale: ``(e, 1)`` the weight of each extra row (an extra row times its ``scale`` is a
+            force; ``sqrt(scale)`` weighs it in Anderson's least squares, as ``sqrt(P)`` a
+            position row).
+        forces: ``X -> (e, 3)``: the contact forces that the extra rows hold, N.
+    """
+
+    touching: object
+    place: Callable
+    sweep: Callable
+    owners: np.ndarray
+    scale: object
+    forces: Callable
 
 
 class Integrator:

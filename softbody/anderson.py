@@ -20,41 +20,42 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 
-def init(m: int, size: int, dtype, blocks: int = 1):
+def init(m: int, size: int, dtype, labels: np.ndarray | None = None):
     """An empty Anderson history.
 
     Arguments:
         m: the history length (0 allowed: the plain iteration keeps no history).
         size: ``N``, the number of unknowns (the iterate's size).
         dtype: the iterate's floating-point type.
-        blocks: the number of blocks mixed separately (see :func:`mix`).
+        labels: the block of each entry, as :func:`mix` takes them (``None``: one block).
 
     Returns:
-        ``(dR (m, N), dG (m, N), Gram (blocks, m, m), r (N,), g (N,), count ())``: residual
-        and output differences, the Gram matrices of each block's residual differences, the
-        last weighted residual and output, and the number of pairs seen since the last
-        restart.
+        ``(dR (m, N), dG (m, N), Gram, r (N,), g (N,), count ())``: residual and output
+        differences, the Gram matrix of the residual differences (``(m, m)``; with ``labels``
+        ``(B, m, m)``, one per block), the last weighted residual and output,
+        and the number of pairs seen since the last restart.
     """
     return (
         jnp.zeros((m, size), dtype),
         jnp.zeros((m, size), dtype),
-        jnp.zeros((blocks, m, m), dtype),
+        jnp.zeros((m, m) if labels is None else (int(np.max(labels)) + 1, m, m), dtype),
         jnp.zeros(size, dtype),
         jnp.zeros(size, dtype),
         jnp.asarray(0),
     )
 
 
-def mix(x, gx, weight, hist, restart, m: int, blocks: tuple = ()):
+def mix(x, gx, weight, hist, restart, m: int, labels: np.ndarray | None = None):
     """One Anderson (type II) update from the pair ``(x, G(x))``: returns ``(x_next, hist)``.
 
     The last ``m`` differences of residuals ``weight * (G(x) - x)`` and of map outputs give
     the mixing coefficients by regularised least squares (their Gram matrix is updated one
     row per iteration); ``restart`` clears the history (the next iterate is then the plain
-    ``G(x)``). ``m = 0`` is the plain iteration. With ``blocks`` each block of entries gets
-    coefficients of its own, from its own rows of the differences: the update of
+    ``G(x)``). ``m = 0`` is the plain iteration. With ``labels`` each block of entries gets
+    coefficients of its own, from its own entries of the differences: the update of
     independent sub-problems (bodies that do not touch) is then theirs alone, as if each
     were iterated by itself (one set of coefficients for all mixes their histories, and a
     block that has converged slows the others).
@@ -63,12 +64,12 @@ def mix(x, gx, weight, hist, restart, m: int, blocks: tuple = ()):
         x: the current iterate (any shape, ``N`` entries).
         gx: ``G(x)``, the map's output (the shape of ``x``).
         weight: ``(N,)`` weights of the residual entries (zero drops an entry).
-        hist: the history (:func:`init` with ``len(blocks)`` blocks, at least 1, or this
-            function's previous output).
+        hist: the history (:func:`init` with the same ``labels``, or this function's
+            previous output).
         restart: a boolean scalar: clear the history before this pair.
         m: the history length (static), as given to :func:`init`.
-        blocks: ``((start, stop), ...)`` static ranges of the flattened entries that tile
-            ``0 .. N``; ``()``: one block.
+        labels: ``(N,)`` static ints ``0 .. B - 1``, the block of each flattened entry;
+            ``None``: one block.
 
     Returns:
         ``(x_next, hist)``: the next iterate (the shape of ``x``) and the updated history.
@@ -78,25 +79,34 @@ def mix(x, gx, weight, hist, restart, m: int, blocks: tuple = ()):
     d_r, d_g, gram, prev_r, prev_g, count = hist
     r = weight * (gx - x).ravel()
     g = gx.ravel()
-    spans = blocks or ((0, r.size),)
     slot = jnp.maximum(count - 1, 0) % m
     push = count >= 1
     d_r = jnp.where(push, d_r.at[slot].set(r - prev_r), d_r)
     d_g = jnp.where(push, d_g.at[slot].set(g - prev_g), d_g)
-    rows = jnp.stack([d_r[:, a:b] @ d_r[slot, a:b] for a, b in spans])  # (blocks, m)
-    gram = jnp.where(push, gram.at[:, slot, :].set(rows).at[:, :, slot].set(rows), gram)
+    if labels is None:
+        row = d_r @ d_r[slot]
+        gram = jnp.where(push, gram.at[slot, :].set(row).at[:, slot].set(row), gram)
+    else:
+        blocks = gram.shape[0]
+        rows = jax.ops.segment_sum((d_r * d_r[slot]).T, labels, blocks)  # (B, m)
+        gram = jnp.where(push, gram.at[:, slot, :].set(rows).at[:, :, slot].set(rows), gram)
     count = jnp.where(restart, 1, count + 1)
     valid = (jnp.arange(m) < jnp.minimum(count - 1, m)).astype(r.dtype)
     gram_valid = gram * valid[:, None] * valid[None, :]
-    reg = 1e-10 * jnp.trace(gram_valid, axis1=1, axis2=2) + jnp.finfo(r.dtype).tiny  # (blocks,)
-    system = gram_valid + reg[:, None, None] * jnp.eye(m) + jnp.diag(1.0 - valid)
-    rhs = jnp.stack([valid * (d_r[:, a:b] @ r[a:b]) for a, b in spans])
-    gamma = jnp.linalg.solve(system, rhs[..., None])[..., 0]  # (blocks, m)
-    x_next = jnp.concatenate([g[a:b] - gamma[i] @ d_g[:, a:b] for i, (a, b) in enumerate(spans)])
+    if labels is None:
+        reg = 1e-10 * jnp.trace(gram_valid) + jnp.finfo(r.dtype).tiny
+        gamma = jnp.linalg.solve(gram_valid + jnp.diag(reg + (1.0 - valid)), valid * (d_r @ r))
+        x_next = g - gamma @ d_g
+    else:
+        reg = 1e-10 * jnp.trace(gram_valid, axis1=1, axis2=2) + jnp.finfo(r.dtype).tiny  # (B,)
+        system = gram_valid + reg[:, None, None] * jnp.eye(m) + jnp.diag(1.0 - valid)
+        rhs = jax.ops.segment_sum((d_r * r).T, labels, blocks) * valid  # (B, m)
+        gamma = jnp.linalg.solve(system, rhs[..., None])[..., 0]  # (B, m)
+        x_next = g - jnp.sum(gamma[labels].T * d_g, axis=0)
     return x_next.reshape(x.shape), (d_r, d_g, gram, r, g, count)
 
 
-def linear_solve(matvec, b, *, history: int, rtol: float, max_iter: int, blocks: tuple = ()):
+def linear_solve(matvec, b, *, history: int, rtol: float, max_iter: int, labels: np.ndarray | None = None):
     """Solve ``matvec(u) = b``, ``matvec = I - J``, ``rho(J) < 1``: Anderson on ``u = J u + b``.
 
     Arguments:
@@ -105,7 +115,8 @@ def linear_solve(matvec, b, *, history: int, rtol: float, max_iter: int, blocks:
         history: the Anderson history length (>= 1).
         rtol: stop when ``|J u + b - u| <= rtol |b|``.
         max_iter: iteration cap (the last iterate is returned when it is reached).
-        blocks: ranges of the flattened entries mixed separately (see :func:`mix`).
+        labels: the block of each flattened entry, mixed separately (see :func:`mix`), or
+            ``None``.
 
     Returns:
         ``u``, the shape of ``b``.
@@ -117,14 +128,14 @@ def linear_solve(matvec, b, *, history: int, rtol: float, max_iter: int, blocks:
         u, k, _, hist = c
         tu = u - matvec(u) + b
         residual = jnp.linalg.norm((tu - u).ravel())
-        u, hist = mix(u, tu, jnp.ones(u.size, u.dtype), hist, jnp.asarray(False), history, blocks)
+        u, hist = mix(u, tu, jnp.ones(u.size, u.dtype), hist, jnp.asarray(False), history, labels)
         return u, k + 1, residual, hist
 
     start = (
         b,
         jnp.asarray(0),
         jnp.asarray(jnp.inf, b.dtype),
-        init(history, b.size, b.dtype, max(len(blocks), 1)),
+        init(history, b.size, b.dtype, labels),
     )
     u, *_ = jax.lax.while_loop(lambda c: (c[2] > threshold) & (c[1] < max_iter), body, start)
     return u

@@ -87,22 +87,33 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass, field
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from softbody import anderson
 from softbody.active_set import ActiveSet
 from softbody.fixed_point import closure_convert, fixed_point
 from softbody.obstacles import check_obstacles, norm, unit
-from softbody._interfaces import Coordinates
+from softbody._interfaces import ContactSweep, Coordinates
 from softbody.solvers import NonlinearSolver, Solution, StepProblem
 from softbody.splitting import Naive, ScaledDiagonal, Splitting
 
-__all__ = ["CONTACT_STATES", "Contact"]
+__all__ = ["CONTACT_STATES", "Contact", "ContactMap"]
 
 #: The contact states that :meth:`Contact.report` gives, by code.
 CONTACT_STATES = ("none", "stick", "slide")
+
+# m/s: the tangential speed relative to the obstacle above which a vertex of a rigid part
+# (a rigid body, a bone) counts as sliding at a step's start and meets the kinetic cone
+# only. With mu_s > mu_k the static cone's threshold is a hysteresis: corners of one rigid
+# part, coupled through its motion, can flip between sticking and sliding without end in
+# the same step (a tumbling brick's impact stalled at a residual of 1e-5-1e-4 with every
+# history length); a contact already sliding has no static friction to lose. Resting
+# contacts (drift 1e-8 m in 0.4 s, 2.5e-8 m/s) stay far below it.
+SLIDING_SPEED = 1e-4
 
 
 # --------------------------------------------------------------------------------------
@@ -138,6 +149,11 @@ def _contact_step(y, x_n, v_n, h, frame, free):
     """
     touching, _, correction = _contact_state(y, x_n, v_n, h, frame, free)
     return y + jnp.where(touching[:, None], correction, 0.0)
+
+
+def _positions(x, n: int):
+    """The positions ``(n, 3)``: the first ``n`` rows of a contact iterate ``(n + e, 3)``."""
+    return x if x.shape[0] == n else x[:n]
 
 
 def _tangential(v, normal):
@@ -241,10 +257,13 @@ class Contact:
             raise ValueError(f"Contact.blocks must be consecutive vertex ranges (start, stop) from 0, got {self.blocks!r}")
         object.__setattr__(self, "blocks", blocks)
 
-    @property
-    def _flat_blocks(self) -> tuple:
-        """``blocks`` as ranges of the flattened ``(n, 3)`` positions."""
-        return tuple((3 * a, 3 * b) for a, b in self.blocks)
+    def _labels(self, owners: np.ndarray) -> np.ndarray | None:
+        """The Anderson block of each flattened entry of the iterate ``(n + e, 3)`` (an extra
+        row in its vertex's block), or ``None`` for one block."""
+        if not self.blocks:
+            return None
+        vertex = np.repeat(np.arange(len(self.blocks)), [b - a for a, b in self.blocks])
+        return np.repeat(np.concatenate([vertex, vertex[owners]]), 3)
 
     def run(self, problem: StepProblem, coordinates: Coordinates, solver: NonlinearSolver, x0, q0, threshold,
             max_iter: int) -> Solution:
@@ -277,7 +296,8 @@ class Contact:
                 "the Naive splitting has nothing to invert in a static solve (no mass): "
                 "use ScaledDiagonal() or Diagonal()"
             )
-        fixed_point_map, weight = self.map(problem, coordinates)
+        iteration = self.map(problem, coordinates)
+        n = x0.shape[0]
         free = problem.free[:, 0] > 0
 
         def distance(x, t):
@@ -291,13 +311,13 @@ class Contact:
             fast = self.active_set.map(problem, self._law(problem), delassus, self._sweep_diagonal(problem))
         solve, consts = jax.closure_convert(
             lambda x0, q0: self._solve(
-                problem, coordinates, solver, fixed_point_map, weight, fast, start, distance, x0, q0,
-                threshold, max_iter
+                problem, coordinates, solver, iteration, fast, start, distance, x0, q0, threshold, max_iter
             ),
             x0,
             q0,
         )
         sol, cache = solve(*jax.lax.stop_gradient((x0, q0, *consts)))
+        fixed_point_map = iteration.apply
         if fast is None:
             position = lambda x, q: fixed_point_map(x, q)[0]  # noqa: E731
         else:
@@ -313,82 +333,113 @@ class Contact:
             history=max(int(self.history), 1),
             rtol=self.adjoint_tol,
             max_iter=self.adjoint_max_iter,
-            blocks=self._flat_blocks,
+            labels=iteration.labels,
         )
-        return sol._replace(x=fixed_point(position, linear_solve, sol.x, sol.q, *consts))
+        return sol._replace(x=_positions(fixed_point(position, linear_solve, sol.x, sol.q, *consts), n))
 
-    def map(self, problem: StepProblem, coordinates: Coordinates):
-        """The fixed-point map of one iteration and its Anderson weights.
+    def map(self, problem: StepProblem, coordinates: Coordinates) -> "ContactMap":
+        """The fixed-point map of one iteration, on the iterate ``X`` ``(n + e, 3)``: the
+        positions and the coordinates' extra rows (see
+        :class:`~softbody._interfaces.ContactSweep`).
 
         Arguments:
             problem: the step; coordinates: its unknowns.
 
         Returns:
-            ``(fixed_point_map, weight)``: ``(x, q) -> (x_new, q_new, |grad Phi(x) - r|)``
-            and ``sqrt(P)`` ``(n * 3,)`` (zero on fixed vertices).
+            A :class:`ContactMap`.
         """
         h = problem.dt
         p = self._sweep_diagonal(problem)
-        touching, place, sweep = coordinates.contact_sweep(problem, p)
-        t_end = problem.time + h
+        parts = coordinates.contact_sweep(problem, p, self._law(problem))
+        touching, n, t_end = parts.touching, problem.x_n.shape[0], problem.time + h
 
-        def fixed_point_map(x, q):
-            x, aux = place(x)
-            _, g, q = problem.evaluate(x, q)
-            y = x - g / p  # one splitting sweep
+        def apply(x, q):
+            placed, aux = parts.place(x)
+            _, g, q = problem.evaluate(placed, q)
+            y = placed - g / p  # one splitting sweep
             frame = _nearest_obstacle(problem.obstacles, y, t_end)
             x_new = jnp.where(
-                touching > 0, _contact_step(y, problem.x_n, problem.v_n, h, frame, touching), x
+                touching > 0, _contact_step(y, problem.x_n, problem.v_n, h, frame, touching), placed
             )
-            x_new, rest = sweep(x, x_new, g, aux)
-            residual = norm(jnp.concatenate([(touching * p * (x_new - x)).ravel(), rest]))
+            x_new, rest = parts.sweep(x, x_new, g, aux)
+            residual = norm(jnp.concatenate([(touching * p * (_positions(x_new, n) - placed)).ravel(), rest]))
             return x_new, q, residual  # = |grad Phi(x) - r|
 
-        return fixed_point_map, jnp.broadcast_to(jnp.sqrt(p) * problem.free, problem.x_n.shape).ravel()
+        weight = jnp.broadcast_to(jnp.sqrt(p) * problem.free, problem.x_n.shape).ravel()
+        extra = len(parts.owners)
+        if extra:
+            weight = jnp.concatenate([weight, jnp.broadcast_to(jnp.sqrt(parts.scale), (extra, 3)).ravel()])
 
-    def report(self, problem: StepProblem, coordinates: Coordinates, x, q):
+        def lift(x):
+            return jnp.concatenate([x, jnp.zeros((extra, 3), x.dtype)]) if extra else x
+
+        return ContactMap(apply, weight, self._labels(parts.owners), lift, parts)
+
+    def report(self, problem: StepProblem, coordinates: Coordinates, x, q, threshold, max_iter: int):
         """The contact forces and states at a step's solution.
 
         At the fixed point the force residual ``grad Phi - r`` vanishes, so the force the
         obstacles exert on a vertex in contact is ``r = grad Phi(x)``; a vertex is in contact
         where the contact step acts at ``x``, and slides where it ends the step displaced
-        along the obstacle (see the comment in the code for the threshold).
+        along the obstacle (see the comment in the code for the threshold). The forces on
+        vertices that coordinates move as a whole (a skeleton's skin: rigid bodies, bones)
+        are the extra rows of the iteration run again from ``x`` (the body barely moves,
+        its forces build up) to ``threshold``.
 
         Arguments:
             problem: the step; coordinates: its unknowns.
             x: ``(n, 3)`` the step's solution; q: ``(4, t)`` rotations of ``x``.
+            threshold, max_iter: the step's force tolerance and iteration cap.
 
         Returns:
             ``(force (n, 3), state (n,))``: forces in N (zero off contact) and int8 states
             ``CONTACT_STATES`` (0: no contact, 1: sticking, 2: sliding).
         """
         p = self._sweep_diagonal(problem)
-        touching, place, _ = coordinates.contact_sweep(problem, p)
-        x, _ = place(x)
+        iteration = self.map(problem, coordinates)
+        parts = iteration.parts
+        x, _ = parts.place(x)
         _, g, _ = problem.evaluate(x, q)
         y = x - g / p
         frame = _nearest_obstacle(problem.obstacles, y, problem.time + problem.dt)
-        contact, _, _ = _contact_state(y, problem.x_n, problem.v_n, problem.dt, frame, touching)
+        contact, _, _ = _contact_state(y, problem.x_n, problem.v_n, problem.dt, frame, parts.touching)
+        force = jnp.where(contact[:, None], g, 0.0)
+        normal, vel, mu_s, mu_k = frame[1], frame[2], frame[3], frame[4]
         # Stick or slide from the solution itself: a sticking vertex ends the step with no
         # tangential displacement relative to the obstacle; a sliding one keeps at least
         # (mu_s - mu_k) depth of it (its sweep slip exceeded mu_s depth, the kinetic cone
         # took back mu_k depth), with depth = r_n / P the normal force over the vertex's
         # sweep weight. Half that margin separates the two robustly (the decision of the
         # contact step itself is a tie at the cone's edge).
-        _, normal, vel, mu_s, mu_k, _ = frame
+        weight = p[:, 0]
+        if len(parts.owners):
+            solved = self._iterate(iteration, iteration.lift(x), q, threshold, max_iter)
+            owners = jnp.asarray(parts.owners)
+            skin = parts.forces(solved.x)
+            frame_skin = _nearest_obstacle(problem.obstacles, x[owners], problem.time + problem.dt)
+            pushed = jnp.sum(skin * frame_skin[1], axis=-1) > 0
+            contact = contact.at[owners].set(pushed)
+            force = force.at[owners].set(jnp.where(pushed[:, None], skin, 0.0))
+            normal, vel = normal.at[owners].set(frame_skin[1]), vel.at[owners].set(frame_skin[2])
+            mu_s, mu_k = mu_s.at[owners].set(frame_skin[3]), mu_k.at[owners].set(frame_skin[4])
+            weight = weight.at[owners].set(parts.scale[:, 0])
         slip_t = norm(_tangential(x - problem.x_n - problem.dt * vel, normal))
-        depth = jnp.maximum(jnp.sum(g * normal, axis=-1), 0.0) / p[:, 0]
+        depth = jnp.maximum(jnp.sum(force * normal, axis=-1), 0.0) / weight
         sliding = slip_t > jnp.maximum(0.5 * (mu_s - mu_k), 1e-6) * depth
         state = jnp.where(contact, jnp.where(sliding, 2, 1), 0).astype(jnp.int8)
-        return jnp.where(contact[:, None], g, 0.0), state
+        return force, state
 
     def _law(self, problem: StepProblem):
         """The per-vertex contact step on some vertices, as :class:`~softbody.active_set.ActiveSet` takes it."""
         h = problem.dt
         t_end = problem.time + h
 
-        def law(y, index, valid):
+        def law(y, index, valid, kinetic=False):
             frame = _nearest_obstacle(problem.obstacles, y, t_end)
+            if kinetic:  # vertices sliding at the step's start meet the kinetic cone only
+                phi, normal, vel, mu_s, mu_k, e = frame
+                moving = norm(_tangential(problem.v_n[index] - vel, normal)) > SLIDING_SPEED
+                frame = (phi, normal, vel, jnp.where(moving, mu_k, mu_s), mu_k, e)
             touching, stick, correction = _contact_state(
                 y, problem.x_n[index], problem.v_n[index], h, frame, valid[:, None].astype(y.dtype))
             return touching, stick, correction, frame[1]
@@ -404,43 +455,44 @@ class Contact:
         return jnp.where(problem.free > 0, inertia + self.splitting.diagonal(stiffness), 1.0)
 
     def _solve(
-        self, problem: StepProblem, coordinates, solver, fixed_point_map, weight, fast, start, distance, x0,
-        q0, threshold, max_iter: int
+        self, problem: StepProblem, coordinates, solver, iteration, fast, start, distance, x0, q0,
+        threshold, max_iter: int
     ):
         """The forward solve: the free-step shortcut, else the contact iteration.
 
-        Returns ``(solution, cache)``: the cache of the fast iteration's last active set
-        (``None`` without one)."""
+        Returns ``(solution, cache)``: the solution on the iterate ``(n + e, 3)`` and the
+        cache of the fast iteration's last active set (``None`` without one)."""
 
         t_end = problem.time + problem.dt
+        n = x0.shape[0]
         near = jnp.min(start) <= self.margin
         no = jnp.asarray(False)
         cache0 = None if fast is None else fast[1]
+        lifted = iteration.lift(x0)
 
         def contact():
             if fast is None:
-                return self._iterate(fixed_point_map, weight, x0, q0, threshold, max_iter)._replace(fallback=no), cache0
-            iteration, cache = fast
-            quick, cache = self.active_set.run(iteration, cache, weight, x0, q0, threshold, max_iter)
+                return self._iterate(iteration, lifted, q0, threshold, max_iter)._replace(fallback=no), cache0
+            quick, cache = self.active_set.run(fast[0], fast[1], iteration.weight, x0, q0, threshold, max_iter)
             # The splitting map checks the result in one evaluation (its fixed point is the
             # same) and finishes the step where a vertex outside the candidates touches. Where
             # the fast iteration stopped short, the splitting starts afresh from the step's
             # start (a stalled iterate can lie farther from the solution), with a budget of
             # its own: the step's cap.
             done = quick.gnorm <= threshold
-            check = self._iterate(fixed_point_map, weight, jnp.where(done, quick.x, x0),
-                                  jnp.where(done, quick.q, q0), threshold, max_iter)
+            check = self._iterate(iteration, jnp.where(done, quick.x, x0), jnp.where(done, quick.q, q0),
+                                  threshold, max_iter)
             return check._replace(iterations=check.iterations + quick.iterations,
                                   evaluations=check.evaluations + quick.evaluations,
                                   fallback=~done | (check.iterations > 1)), cache
 
         def free_step():  # the solver sees no obstacles: it is contact-free by definition
             sol = coordinates.minimize(solver, problem._replace(obstacles=()), x0, q0, threshold, max_iter)
-            return sol._replace(fallback=no), cache0
+            return sol._replace(x=iteration.lift(sol.x), fallback=no), cache0
 
         def skipped():
             zero = jnp.asarray(0)
-            return Solution(x0, q0, zero, zero, jnp.asarray(jnp.inf, x0.dtype), no), cache0
+            return Solution(lifted, q0, zero, zero, jnp.asarray(jnp.inf, x0.dtype), no), cache0
 
         # Each branch is traced once: the contact iteration runs when the start is near an
         # obstacle or when the free step's result penetrates one.
@@ -450,12 +502,14 @@ class Contact:
             again, cache = contact()
             return again._replace(evaluations=again.evaluations + sol.evaluations), cache
 
-        return jax.lax.cond(near | (jnp.min(distance(sol.x, t_end)) < 0), redo, lambda: (sol, cache))
+        return jax.lax.cond(near | (jnp.min(distance(_positions(sol.x, n), t_end)) < 0), redo, lambda: (sol, cache))
 
-    def _iterate(self, fixed_point_map, weight, x0, q0, threshold, max_iter: int) -> Solution:
-        """Anderson-accelerated fixed-point iteration; returns the best iterate's map output."""
+    def _iterate(self, iteration: "ContactMap", x0, q0, threshold, max_iter: int) -> Solution:
+        """Anderson-accelerated fixed-point iteration of ``iteration`` from the iterate ``x0``
+        ``(n + e, 3)``; returns the best iterate's map output."""
         zero = jnp.asarray(0)
         inf = jnp.asarray(jnp.inf, x0.dtype)
+        fixed_point_map, weight, labels = iteration.apply, iteration.weight, iteration.labels
 
         def body(c):
             x, q, k, best_x, best_q, best_r, _, hist = c
@@ -465,12 +519,30 @@ class Contact:
             best_q = jnp.where(better, q_new, best_q)
             restart = r > self.restart * best_r
             best_r = jnp.where(better, r, best_r)  # a diverging iteration (NaN) keeps the best
-            x_next, hist = anderson.mix(x, gx, weight, hist, restart, self.history, self._flat_blocks)
+            x_next, hist = anderson.mix(x, gx, weight, hist, restart, self.history, labels)
             return x_next, q_new, k + 1, best_x, best_q, best_r, r, hist
 
-        init = (x0, q0, zero, x0, q0, inf, inf,
-                anderson.init(self.history, x0.size, x0.dtype, max(len(self.blocks), 1)))
+        init = (x0, q0, zero, x0, q0, inf, inf, anderson.init(self.history, x0.size, x0.dtype, labels))
         out = jax.lax.while_loop(lambda c: (c[6] > threshold) & (c[2] < max_iter), body, init)
         _, _, k, best_x, best_q, best_r, _, _ = out
         return Solution(best_x, best_q, k, k, best_r)
 
+
+class ContactMap(NamedTuple):
+    """One iteration of the contact solver (:meth:`Contact.map`).
+
+    Attributes:
+        apply: ``(X, q) -> (X_new, q_new, |grad Phi(x) - r|)`` on the iterate ``X``
+            ``(n + e, 3)``.
+        weight: ``(3 (n + e),)`` Anderson weights: ``sqrt(P)`` on the positions (zero on
+            fixed vertices), ``sqrt(scale)`` on the extra rows.
+        labels: the Anderson block of each flattened entry (static), or ``None``.
+        lift: ``x (n, 3) -> X``: positions with zero extra rows (no contact forces).
+        parts: the coordinates' :class:`~softbody._interfaces.ContactSweep`.
+    """
+
+    apply: Callable
+    weight: jax.Array
+    labels: np.ndarray | None
+    lift: Callable
+    parts: ContactSweep

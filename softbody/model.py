@@ -157,7 +157,7 @@ def build(
             ``motion``, the explicit and Newton reference integrators refuse it. A
             :class:`~softbody.rigid.RigidBody` (always named) joins as a 6-dof root link of
             the scene's reduced coordinates (see :mod:`softbody.scene`); its mass is
-            ``params.rigid_mass``. Rigid bodies take no part in contact yet.
+            ``params.rigid_mass``; it touches obstacles with its surface vertices.
         skeleton: a :class:`~softbody.skeleton.Skeleton` over ``bone:`` regions of the
             scene's mesh, or ``None``; the scene then steps in its reduced coordinates
             (``model.rig`` is the skeleton bound to the mesh).
@@ -170,7 +170,7 @@ def build(
         ``(model, params)``.
 
     Raises:
-        SceneError: rigid bodies with obstacles, no bodies, repeated or missing body names, unknown regions, an empty
+        SceneError: no bodies, repeated or missing body names, unknown regions, an empty
             fixed selection, actuators with no tets or in the wrong place, a combination
             of scene and options that the step does not support, ...
         SkeletonError: a skeleton that does not fit the mesh, a fixed bone vertex, or a bone
@@ -205,9 +205,6 @@ def build(
 
     rig = _rig(mesh, skeleton, free, scene)
     rigid = tuple(part for part in scene.parts if part.rigid is not None)
-    if rigid and obstacles:
-        raise SceneError(f"rigid bodies {[p.name for p in rigid]} do not take part in contact yet: build the scene "
-                         "without obstacles, or model the object as a stiff SoftBody")
     for i, term in enumerate(actuators):
         if not isinstance(term, Actuator):
             raise SceneError(f"actuators[{i}] is a {type(term).__name__}, not an actuator; give the skeleton's "
@@ -285,7 +282,7 @@ def initial_state(model: Model, params: Params | None = None, x=None, v=None) ->
     for name, a in (("x", x), ("v", v)):
         if a.shape != (n, 3):
             raise SceneError(f"initial {name} must have shape ({n}, 3), got {a.shape}")
-        if not isinstance(a, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(a))):
+        if not isinstance(a, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(a))):  # numpy: no trace
             raise SceneError(f"initial {name} has non-finite values")
     dminv, _ = rest_geometry(model, params.morph if params is not None else jnp.zeros((n, 3)))
     f = deformation_gradient(model, dminv, x)

@@ -377,9 +377,9 @@ def _contact_forces(model, params, xs, vs, controls, forces, t0):
     def one(x_n, v_n, t, x, a, f):
         q_n = cold_start(deformation_gradient(solved, prep.dminv, x_n))
         state = _step_start(solved, prep, State(x=x_n, v=v_n, rot=q_n, t=t))
-        problem, _, _, _ = step_problem(solved, prep, state, _activation(model, a), f, static=False)
+        problem, _, threshold, _ = step_problem(solved, prep, state, _activation(model, a), f, static=False)
         q = cold_start(deformation_gradient(solved, prep.dminv, jnp.where(free > 0, x, state.x)))
-        return model.step.contact.report(problem, model.step.coordinates, x, q)
+        return model.step.contact.report(problem, model.step.coordinates, x, q, threshold, model.options.max_iter)
 
     return jax.vmap(one, in_axes=(0, 0, 0, 0, None if controls is None else 0, None if forces is None else 0))(
         x_start, v_start, times, xs[1:], controls, forces)

@@ -51,7 +51,7 @@ import numpy as np
 
 from softbody import rotation as rot
 from softbody.meshing import TetMesh
-from softbody._interfaces import Coordinates
+from softbody._interfaces import ContactSweep, Coordinates
 from softbody._types import SceneError
 from softbody.solvers import (LBFGS, LocalGlobal, Solution, StepProblem, empty_history, iterate, lbfgs_direction,
                               store_pair)
@@ -307,6 +307,9 @@ class Rig:
         is_bone: ``(n, 1)`` 1.0 on bone vertices, 0.0 elsewhere.
         vertex_link: ``(n_b,)`` link index of each bone vertex.
         rest: ``(n_b, 3)`` rest positions of the bone vertices.
+        skin: ``(c,)`` indices into :attr:`bone` of the bone vertices that touch obstacles:
+            those on the mesh's surface, on links that some dof moves.
+        tree: ``(L,)`` the root link of each link's tree.
         detached_dofs: ``(n_dofs,)`` 1.0 on the dofs of free bodies (a :class:`Free` root
             with no children whose vertices are in no tet: a rigid body), else 0.0.
         n_vertices: vertices of the mesh.
@@ -381,6 +384,14 @@ class Rig:
         in_tets = np.isin(np.concatenate(bone), mesh.tets)
         detached = np.array([isinstance(link.joint, Free) and not np.any(parent == i)
                              and not in_tets[vertex_link == i].any() for i, link in enumerate(links)])
+        # Bone vertices that can touch obstacles: on the mesh's surface, on a link some
+        # dof moves (a bone welded to the world carries its contact forces in the weld).
+        root = np.arange(n_links)
+        for i in range(n_links):
+            root[i] = i if parent[i] < 0 else root[parent[i]]
+        moved_link = np.array([n_dofs[j] > 0 for j in range(n_links)]) @ ancestor.T > 0
+        all_bone = np.concatenate(bone)
+        skin = np.flatnonzero(np.isin(all_bone, np.asarray(mesh.surface)) & moved_link[vertex_link])
         one_hot = np.zeros((len(vertex_link), n_links))
         one_hot[np.arange(len(vertex_link)), vertex_link] = 1.0
         for name, value in dict(
@@ -393,6 +404,7 @@ class Rig:
                 scalar_links=scalar, scalar_coords=coord_start[scalar], scalar_dofs=dof_start[scalar],
                 rot_axis=rot_axis, slide_axis=slide_axis, origin=origin,
                 lower=lo, upper=hi, n_vertices=mesh.n_vertices, detached_dofs=np.repeat(detached, n_dofs).astype(float),
+                skin=skin, tree=root,
                 is_bone=np.isin(np.arange(mesh.n_vertices), np.concatenate(bone))[:, None].astype(float)).items():
             object.__setattr__(self, name, value)
 
@@ -844,6 +856,7 @@ class Reduced(Coordinates):
     solvers = (LBFGS, LocalGlobal)
     rig: Rig
     backtracks: int = 8
+    contact_sweeps: int = 10
 
     def __post_init__(self):
         if not isinstance(self.rig, Rig):
@@ -886,28 +899,100 @@ class Reduced(Coordinates):
 
         return embed, solve, 3 * n + k
 
-    def contact_sweep(self, problem, p):
-        """The soft vertices take the contact step; the skeleton sweeps its block (see the
-        class docstring). See :meth:`softbody._interfaces.Coordinates.contact_sweep`."""
+    def contact_sweep(self, problem, p, law):
+        """The soft vertices take the per-vertex contact step; the skeleton sweeps its block
+        with the contact forces on its skin (see the class docstring). See
+        :meth:`softbody._interfaces.Coordinates.contact_sweep`."""
         rig = self.rig
-        bone = jnp.asarray(rig.bone)
+        n, bone, skin = rig.n_vertices, jnp.asarray(rig.bone), rig.skin
         p_bone = p[bone, 0]
+        owners = np.asarray(rig.bone)[skin]
+        index = jnp.asarray(owners)
+        tree = jnp.asarray(rig.tree[rig.vertex_link[skin]])
+        valid = problem.free[index, 0] > 0
 
         def place(x):
+            x = x if x.shape[0] == n else x[:n]
             z = rig.coordinates(x[bone])
             pose = rig.pose(z)
             return x.at[bone].set(pose.x), (z, pose)
 
+        def inverse(jac, move):
+            """``K^-1`` of the sweep's block ``K = B^T P_b B``, zero on the held dofs."""
+            mask = move[:, None] * move[None, :]
+            k_z = jnp.einsum("vik,v,vil->kl", jac, p_bone, jac) * mask
+            return jnp.linalg.inv(k_z + jnp.diag(1.0 - move)) * mask
+
+        def delassus_diagonal(b_skin, k_inv):
+            """``(c, 3)`` the diagonal of ``W = B_C K^-1 B_C^T`` (the skin's Delassus operator)."""
+            return jnp.maximum(jnp.einsum("cik,kl,cil->ci", b_skin, k_inv, b_skin), 0.0)
+
+        def forces(x):
+            return scale * x[n:]
+
+        if not len(skin):
+            def sweep(x, x_new, g, aux):
+                z, pose = aux
+                jac = rig._jacobian(pose)  # (n_b, 3, k)
+                g_z = rig.reduce(pose, g[bone])
+                move = 1.0 - _held(rig, z, g_z)
+                k_z = jnp.einsum("vik,v,vil->kl", jac, p_bone, jac) * move[:, None] * move[None, :]
+                d_z = jnp.linalg.solve(k_z + jnp.diag(1.0 - move), g_z * move)
+                return x_new.at[bone].set(rig.positions(rig.retract(z, -d_z))), g_z * move
+
+            scale = jnp.zeros((0, 1), p.dtype)
+            return ContactSweep(problem.free * (1.0 - rig.is_bone), place, sweep, owners, scale, forces)
+
+        # The extra rows hold the skin's contact forces over the effective mass of each skin
+        # vertex at the step's start (so that they are displacements, as the other rows).
+        jac_n = rig._jacobian(rig.pose(rig.coordinates(problem.x_n[bone])))
+        w_n = delassus_diagonal(jac_n[skin], inverse(jac_n, jnp.ones(rig.n_dofs, p.dtype)))
+        scale = (3.0 / jnp.maximum(w_n.sum(axis=1), 1e-300))[:, None]
+
         def sweep(x, x_new, g, aux):
             z, pose = aux
-            jac = rig._jacobian(pose)  # (n_b, 3, k)
+            force = forces(x)  # (c, 3) contact forces on the skin
+            jac = rig._jacobian(pose)
+            b_skin = jac[skin]
             g_z = rig.reduce(pose, g[bone])
-            move = 1.0 - _held(rig, z, g_z)
-            block = jnp.einsum("vik,v,vil->kl", jac, p_bone, jac) * move[:, None] * move[None, :]
-            d_z = jnp.linalg.solve(block + jnp.diag(1.0 - move), g_z * move)
-            return x_new.at[bone].set(rig.positions(rig.retract(z, -d_z))), g_z * move
+            net = g_z - jnp.einsum("cik,ci->k", b_skin, force)
+            move = 1.0 - _held(rig, z, net)
+            k_inv = inverse(jac, move)
+            # The contact forces by relaxed projected Jacobi sweeps on the Delassus operator
+            # W (the body's motion linearised): each skin vertex takes the per-vertex contact
+            # step, with the effective mass 1 / w_i of its diagonal block (w_i its mean
+            # entry), from where the body's sweep puts it less its own force's displacement;
+            # the force moves to that step's force by the fraction w_i / bound_i, with bound_i
+            # >= the absolute row sums of W over the vertices pushing or about to touch (a
+            # Gershgorin bound from |W_ij| <= sqrt(W_ii W_jj), per tree), so that the sweeps
+            # converge for frictionless contact as the splitting does. At a fixed point the
+            # body is in equilibrium with the forces, and each skin vertex satisfies the
+            # contact law (on the surface, inside the cone, sliding against its slip, the
+            # static cone's threshold measured with 1 / w_i as the splitting measures it with
+            # P; a skin vertex sliding at the step's start meets the kinetic cone only, see
+            # softbody.contact.SLIDING_SPEED): the fixed point does not depend on the bound.
+            root = jnp.sqrt(delassus_diagonal(b_skin, k_inv))  # (c, 3)
+            w = jnp.sum(root**2, axis=1) / 3.0
 
-        return problem.free * (1.0 - rig.is_bone), place, sweep
+            def update(force, _):
+                moved = pose.x[skin] - jnp.einsum("cik,k->ci", b_skin,
+                                                  k_inv @ (g_z - jnp.einsum("cik,ci->k", b_skin, force)))
+                near, _, _, _ = law(moved, index, valid)
+                active = near | jnp.any(force != 0, axis=1)
+                reach = jax.ops.segment_sum(jnp.where(active, root.sum(axis=1), 0.0), tree, len(rig.links))[tree]
+                bound = root.max(axis=1) * (reach + jnp.where(active, 0.0, root.sum(axis=1)))
+                touching, _, correction, _ = law(moved - force * w[:, None], index, valid, kinetic=True)
+                target = jnp.where(touching[:, None], correction, 0.0) / jnp.where(w > 0, w, 1.0)[:, None]
+                fraction = jnp.where(bound > 0, w / jnp.where(bound > 0, bound, 1.0), 0.0)
+                return force + fraction[:, None] * (target - force), None
+
+            force_new, _ = jax.lax.scan(update, force, None, length=self.contact_sweeps)
+            d_z = k_inv @ (g_z - jnp.einsum("cik,ci->k", b_skin, force_new))
+            placed = x_new.at[bone].set(rig.positions(rig.retract(z, -d_z)))
+            residual = jnp.concatenate([net * move, (force_new - force).ravel()])
+            return jnp.concatenate([placed, force_new / scale]), residual
+
+        return ContactSweep(problem.free * (1.0 - rig.is_bone), place, sweep, owners, scale, forces)
 
     def minimize(self, solver, problem, x0, q0, threshold, max_iter, unrolled=False):
         """Solve one step without contact (see the class docstring); ``unrolled=False``

@@ -34,8 +34,9 @@ from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from softbody._interfaces import Coordinates
+from softbody._interfaces import ContactSweep, Coordinates
 
 Array = jax.Array
 
@@ -310,14 +311,19 @@ class Vertices(Coordinates):
     def minimize(self, solver, problem, x0, q0, threshold, max_iter, unrolled=False):
         return solver.run(problem, x0, q0, threshold, max_iter, unrolled)
 
-    def contact_sweep(self, problem, p):
+    def contact_sweep(self, problem, p, law):
+        """Every free vertex takes the per-vertex contact step; nothing else moves."""
+
         def place(x):
             return x, None
 
         def sweep(x, x_new, g, aux):
             return x_new, jnp.zeros(0, x.dtype)
 
-        return problem.free, place, sweep
+        def forces(x):
+            return jnp.zeros((0, 3), x.dtype)
+
+        return ContactSweep(problem.free, place, sweep, np.zeros(0, np.int64), jnp.zeros((0, 1)), forces)
 
 
 @dataclass(frozen=True)

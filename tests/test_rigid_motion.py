@@ -173,8 +173,6 @@ def test_rigid_bodies_are_refused_where_they_cannot_go(no_compiling):
         build(RigidBody(BRICK, density=500.0))
     with pytest.raises(SceneError, match="unique"):
         build([soft, _brick()])
-    with pytest.raises(SceneError, match="do not take part in contact yet"):
-        build(_brick(), obstacles=[Plane()])
     with pytest.raises(SceneError, match="mass must be positive"):
         RigidBody(BRICK, mass=-1.0, name="brick")
     arm = SoftBody(beam, Material(), name="arm")

@@ -120,12 +120,12 @@ def _iterations(model, n_plain: int):
             obstacles=tuple(zip(model.obstacles, prep.obstacles)),
         )
         plain = Contact(splitting=contact.splitting, history=0)
-        fixed_point_map, _ = plain.map(problem, model.step.coordinates)
-        x0 = state.x + model.options.dt * state.v + perturbation * free
+        iteration = plain.map(problem, model.step.coordinates)
+        x0 = iteration.lift(state.x + model.options.dt * state.v + perturbation * free)
 
         def body(c, _):
             x, q = c
-            x, q, r = fixed_point_map(x, q)
+            x, q, r = iteration.apply(x, q)
             return (x, q), r
 
         _, residuals = jax.lax.scan(body, (x0, state.rot), None, length=n_plain)
