@@ -308,9 +308,11 @@ def cold_start(f: Mat, iterations: int = 12) -> Quat:
     def step(c):
         x, _, k = c
         y = higham(k, x)
-        change = jnp.max(jnp.sqrt(dot(y - x, y - x) / (dot(y, y) + 1e-300)), initial=0.0)
+        change = jnp.max(jnp.sqrt(dot(y - x, y - x) / (dot(y, y) + 1e-300)))
         return y, change, k + 1
 
+    if f.shape[-1] == 0:  # a scene of rigid bodies only has no tets
+        return jnp.zeros((4, 0), f.dtype)
     x, _, _ = jax.lax.while_loop(unconverged, step, (f, jnp.asarray(jnp.inf, f.dtype), 0))
     s = _sym(matmul(transpose(x), f))
     v = _smallest_eigenvector(s)
