@@ -338,6 +338,44 @@ def central_difference(fn, args, direction, eps: float) -> float:
     return (4 * central(eps / 2) - central(eps)) / 3
 
 
+def random_directions(args, directions=None, *, seed: int = 0) -> dict:
+    """Random unit directions in the space of ``args``, one per named mask.
+
+    Arguments:
+        args: a pytree of float arrays (the point).
+        directions: ``None`` for one direction over all of ``args`` (named ``"all"``), or a
+            mapping ``name -> mask``, each mask a pytree like ``args`` whose leaves are 0/1
+            (or ``False``/``True``) arrays or scalars selecting the entries the direction
+            may move.
+        seed: seed of the directions (drawn in the mapping's order).
+
+    Returns:
+        ``{name: direction}``, each a pytree like ``args`` of unit Euclidean norm.
+
+    Raises:
+        ValueError: if a mask selects no entries.
+    """
+    leaves, tree = jax.tree.flatten(args)
+    if directions is None:
+        directions = {"all": jax.tree.map(lambda a: 1.0, args)}
+    rng = np.random.default_rng(seed)
+    out = {}
+    for name, mask in directions.items():
+        masks = tree.flatten_up_to(mask)
+        d = [rng.standard_normal(np.shape(leaf)) * np.broadcast_to(np.asarray(m, float), np.shape(leaf))
+             for leaf, m in zip(leaves, masks)]
+        norm = math.sqrt(sum(float(np.sum(x * x)) for x in d))
+        if norm == 0:
+            raise ValueError(f"direction {name!r} selects no entries")
+        out[name] = jax.tree.unflatten(tree, [jnp.asarray(x / norm) for x in d])
+    return out
+
+
+def directional(grad, direction) -> float:
+    """The derivative ``grad . direction`` (two pytrees of the same structure)."""
+    return sum(float(jnp.sum(g * v)) for g, v in zip(jax.tree.leaves(grad), jax.tree.leaves(direction)))
+
+
 def check_grad(fn, args, *, directions=None, eps: float = 1e-6, seed: int = 0, verbose: bool = True) -> dict:
     """Compare reverse-mode directional derivatives of ``fn`` with central differences.
 
@@ -369,23 +407,12 @@ def check_grad(fn, args, *, directions=None, eps: float = 1e-6, seed: int = 0, v
     value, grad = value_and_grad(args)
     if jnp.ndim(value) != 0:
         raise ValueError(f"check_grad needs a scalar function, got shape {jnp.shape(value)}")
-    leaves, tree = jax.tree.flatten(args)
     if not all(bool(jnp.all(jnp.isfinite(g))) for g in jax.tree.leaves(grad)):
         raise ValueError("the gradient is not finite")
-    if directions is None:
-        directions = {"all": jax.tree.map(lambda a: 1.0, args)}
-    rng = np.random.default_rng(seed)
     results = {}
-    for name, mask in directions.items():
-        masks = tree.flatten_up_to(mask)
-        d = [rng.standard_normal(np.shape(leaf)) * np.broadcast_to(np.asarray(m, float), np.shape(leaf))
-             for leaf, m in zip(leaves, masks)]
-        norm = math.sqrt(sum(float(np.sum(x * x)) for x in d))
-        if norm == 0:
-            raise ValueError(f"direction {name!r} selects no entries")
-        d = [jnp.asarray(x / norm) for x in d]
-        ad = sum(float(jnp.sum(g * v)) for g, v in zip(jax.tree.leaves(grad), d))
-        fd = central_difference(forward, args, jax.tree.unflatten(tree, d), eps)
+    for name, d in random_directions(args, directions, seed=seed).items():
+        ad = directional(grad, d)
+        fd = central_difference(forward, args, d, eps)
         rel = abs(ad - fd) / max(abs(fd), 1e-300)
         results[name] = {"ad": ad, "fd": fd, "rel_error": rel}
         if verbose:

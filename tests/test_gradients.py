@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from softbody.actuators.muscle import Muscle
-from softbody.gradients import Implicit, ImplicitForward, Unrolled, central_difference, check_grad
+from softbody.gradients import Implicit, ImplicitForward, Unrolled, central_difference, directional, random_directions
 from softbody.material import Material
 from softbody.meshing import Region, examples
 from softbody.model import Options, State, build, initial_state
@@ -54,30 +54,6 @@ def _directions(theta):
     return {k: {j: (1.0 if j == k else 0.0) for j in theta} for k in KINDS}
 
 
-def _with_reference_values(loss, reference):
-    """``loss``'s reverse-mode gradient attached to ``reference``'s values.
-
-    The finite differences of ``check_grad`` then difference ``reference``: the Unrolled
-    forward, which runs 20 iterations past the tolerance, so its values are converged to
-    round-off. The Implicit forward stops at ``tol``; where a parameter moves the loss
-    only slightly (alpha, beta: ~1e-4 per unit), the jitter of where it stops, divided by
-    the step, reached 5e-6 of the derivative in a fresh install (1.5e-7 here).
-    """
-
-    @jax.custom_vjp
-    def f(th):
-        return reference(th)
-
-    def fwd(th):
-        return reference(th), th
-
-    def bwd(th, ct):
-        return (jax.tree.map(lambda g: ct * g, jax.grad(loss)(th)),)
-
-    f.defvjp(fwd, bwd)
-    return f
-
-
 @pytest.fixture(scope="module")
 def implicit_problem():
     return _problem(Implicit())
@@ -91,17 +67,32 @@ def implicit_gradient(implicit_problem):
 
 
 @pytest.fixture(scope="module")
-def gradients(implicit_problem, implicit_gradient):
-    out = {}
-    problems = {"Implicit": implicit_problem, "Unrolled": _problem(Unrolled())}
-    reference = problems["Unrolled"][0]
-    for name, (loss, theta) in problems.items():
-        checked = loss if name == "Unrolled" else _with_reference_values(loss, reference)
+def unrolled_problem():
+    """The Unrolled loss, jitted, and its point. It is the finite differences' reference for
+    every mode: its forward runs 20 iterations past the tolerance, so its values are
+    converged to round-off. The Implicit forward stops at ``tol``; where a parameter moves
+    the loss only slightly (alpha, beta: ~1e-4 per unit), the jitter of where it stops,
+    divided by the step, reached 5e-6 of the derivative in a fresh install (1.5e-7 here)."""
+    loss, theta = _problem(Unrolled())
+    return jax.jit(loss), theta
+
+
+@pytest.fixture(scope="module")
+def gradients(implicit_gradient, unrolled_problem):
+    """Per mode, each kind's derivative along a random unit direction against the
+    reference's central differences along it (the same differences for both modes), and
+    the mode's gradient."""
+    reference, theta = unrolled_problem
+    grads = {"Implicit": implicit_gradient, "Unrolled": jax.jit(jax.grad(reference))(theta)}
+    out = {mode: ({}, g) for mode, g in grads.items()}
+    for kind, d in random_directions(theta, _directions(theta)).items():
         # eps = 3e-5: the det-targeting volume term is nonlinear enough that the
         # Richardson-extrapolated differences' O(eps^4) truncation reached 1.2e-6 on alpha at
         # eps = 1e-4 (1.5e-7 at 3e-5).
-        errors = check_grad(checked, theta, directions=_directions(theta), eps=3e-5, verbose=False)
-        out[name] = (errors, implicit_gradient if name == "Implicit" else jax.jit(jax.grad(loss))(theta))
+        fd = central_difference(reference, theta, d, 3e-5)
+        for mode, g in grads.items():
+            ad = directional(g, d)
+            out[mode][0][kind] = {"ad": ad, "fd": fd, "rel_error": abs(ad - fd) / max(abs(fd), 1e-300)}
     return out
 
 
@@ -129,39 +120,34 @@ FORWARD_KINDS = ("logE", "density", "v0", "activation", "force")
 @pytest.fixture(scope="module")
 def forward_jacobian(implicit_gradient):
     """``jax.jacfwd`` through :class:`ImplicitForward` of the loss along one random unit
-    direction per parameter kind (a Jacobian with one column per kind), with those
-    directions' central differences of the Unrolled forward (converged to round-off, see
-    :func:`_with_reference_values`) and the reverse-mode (Implicit) derivatives."""
+    direction per parameter kind (a Jacobian with one column per kind), the reverse-mode
+    (Implicit) derivatives along them, and the directions."""
     loss, theta = _problem(ImplicitForward())
-    reference = jax.jit(_problem(Unrolled())[0])
-    rng = np.random.default_rng(7)
-    directions = []
-    for kind in FORWARD_KINDS:
-        d = {k: jnp.zeros_like(v) for k, v in theta.items()}
-        d[kind] = jnp.asarray(rng.standard_normal(np.shape(theta[kind])))
-        d[kind] = d[kind] / jnp.linalg.norm(d[kind])
-        directions.append(d)
+    masks = {kind: {k: k == kind for k in theta} for kind in FORWARD_KINDS}
+    directions = list(random_directions(theta, masks, seed=7).values())
 
     def along(c):
         return loss(jax.tree.map(lambda t, *ds: t + sum(ci * di for ci, di in zip(c, ds)), theta, *directions))
 
     jac = np.asarray(jax.jit(jax.jacfwd(along))(jnp.zeros(len(FORWARD_KINDS))))
-    fd = np.array([central_difference(reference, theta, d, 3e-5) for d in directions])
-    g = implicit_gradient
-    rev = np.array([sum(float(jnp.sum(g[k] * d[k])) for k in theta) for d in directions])
-    return jac, fd, rev
+    rev = np.array([directional(implicit_gradient, d) for d in directions])
+    return jac, rev, directions
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("index", range(len(FORWARD_KINDS)), ids=FORWARD_KINDS)
-def test_forward_implicit_jacobian_matches_finite_differences(forward_jacobian, index):
-    jac, fd, _ = forward_jacobian
-    assert abs(fd[index]) > 1e-8, "the loss does not depend on this parameter: the check would be vacuous"
-    assert abs(jac[index] - fd[index]) <= 1e-6 * abs(fd[index]), (jac[index], fd[index])
+def test_forward_implicit_jacobian_matches_finite_differences(forward_jacobian, unrolled_problem, index):
+    """Each column against the central differences of the Unrolled forward (converged to
+    round-off, see ``unrolled_problem``) along its direction."""
+    jac, _, directions = forward_jacobian
+    reference, theta = unrolled_problem
+    fd = central_difference(reference, theta, directions[index], 3e-5)
+    assert abs(fd) > 1e-8, "the loss does not depend on this parameter: the check would be vacuous"
+    assert abs(jac[index] - fd) <= 1e-6 * abs(fd), (jac[index], fd)
 
 
 def test_forward_implicit_agrees_with_reverse_implicit(forward_jacobian):
-    jac, _, rev = forward_jacobian
+    jac, rev, _ = forward_jacobian
     np.testing.assert_allclose(jac, rev, rtol=1e-8, atol=0)
 
 
