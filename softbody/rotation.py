@@ -290,6 +290,8 @@ def cold_start(f: Mat, iterations: int = 12) -> Quat:
     Returns:
         ``(4, T)`` unit quaternions.
     """
+    if f.shape[-1] == 0:  # a scene of rigid bodies only has no tets
+        return jnp.zeros((4, 0), f.dtype)
 
     def higham(_, x):
         c = _cofactor(x)
@@ -311,8 +313,6 @@ def cold_start(f: Mat, iterations: int = 12) -> Quat:
         change = jnp.max(jnp.sqrt(dot(y - x, y - x) / (dot(y, y) + 1e-300)))
         return y, change, k + 1
 
-    if f.shape[-1] == 0:  # a scene of rigid bodies only has no tets
-        return jnp.zeros((4, 0), f.dtype)
     x, _, _ = jax.lax.while_loop(unconverged, step, (f, jnp.asarray(jnp.inf, f.dtype), 0))
     s = _sym(matmul(transpose(x), f))
     v = _smallest_eigenvector(s)

@@ -50,8 +50,9 @@ def _problem(adjoint, mesh=None):
     return loss, theta
 
 
-def _directions(theta):
-    return {k: {j: (1.0 if j == k else 0.0) for j in theta} for k in KINDS}
+def _directions(theta, kinds=KINDS):
+    """Masks for :func:`random_directions`: one direction per kind, moving only that kind."""
+    return {k: {j: (1.0 if j == k else 0.0) for j in theta} for k in kinds}
 
 
 @pytest.fixture(scope="module")
@@ -123,8 +124,7 @@ def forward_jacobian(implicit_gradient):
     direction per parameter kind (a Jacobian with one column per kind), the reverse-mode
     (Implicit) derivatives along them, and the directions."""
     loss, theta = _problem(ImplicitForward())
-    masks = {kind: {k: k == kind for k in theta} for kind in FORWARD_KINDS}
-    directions = list(random_directions(theta, masks, seed=7).values())
+    directions = list(random_directions(theta, _directions(theta, FORWARD_KINDS), seed=7).values())
 
     def along(c):
         return loss(jax.tree.map(lambda t, *ds: t + sum(ci * di for ci, di in zip(c, ds)), theta, *directions))
