@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from softbody._interfaces import VertexActuator
+from softbody._interfaces import VertexTerm
 from softbody._types import SceneError
 from softbody.skeleton import Prismatic, Revolute, Rig
 
@@ -76,7 +76,7 @@ def _check_activation(activation: Array, names: tuple[str, ...], what: str) -> A
 
 
 @dataclass(frozen=True, eq=False)
-class JointTorque(VertexActuator):
+class JointTorque(VertexTerm):
     """Torque (revolute, N m) or force (prismatic, N) on joints: one channel per joint.
 
     The activation of channel ``j`` is the torque held over the step; the energy is
@@ -98,7 +98,7 @@ class JointTorque(VertexActuator):
         object.__setattr__(self, "joints", _check_joints(self.joints, "JointTorque"))
 
     def bind(self, rig) -> "JointTorque":
-        """The term on the scene's skeleton (see :meth:`softbody._interfaces.Actuator.bind`)."""
+        """The term on the scene's skeleton (see :meth:`softbody._interfaces.Term.bind`)."""
         return _bind(self, rig, "JointTorque")
 
     @property
@@ -142,7 +142,7 @@ class ServoParams(eqx.Module):
 
 
 @dataclass(frozen=True, eq=False)
-class JointServo(VertexActuator):
+class JointServo(VertexTerm):
     """Position servos on joints: one channel per joint, the target angle (rad) or slide (m).
 
     The torque is ``clip(k (target - theta), -tau_max, tau_max)``, taken implicitly: the
@@ -177,7 +177,7 @@ class JointServo(VertexActuator):
             object.__setattr__(self, name, value)
 
     def bind(self, rig) -> "JointServo":
-        """The term on the scene's skeleton (see :meth:`softbody._interfaces.Actuator.bind`)."""
+        """The term on the scene's skeleton (see :meth:`softbody._interfaces.Term.bind`)."""
         return _bind(self, rig, "JointServo")
 
     @property

@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from softbody._interfaces import ElementActuator
+from softbody._interfaces import ElementTerm
 from softbody.elastic import shape_gradients
 
 Array = jax.Array
@@ -67,7 +67,7 @@ class MusclePrep(eqx.Module):
 
 
 @dataclass(frozen=True, eq=False)
-class Muscle(ElementActuator):
+class Muscle(ElementTerm):
     """A group of muscle tets with one or more control channels.
 
     Attributes:

@@ -43,7 +43,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from softbody._interfaces import VertexActuator, VolumeActuator
+from softbody._interfaces import VertexTerm, VolumeTerm
 from softbody._types import SceneError
 
 Array = jax.Array
@@ -221,7 +221,7 @@ class _Cavities:
 
 
 @dataclass(frozen=True, eq=False)
-class CavityPressure(_Cavities, VertexActuator):
+class CavityPressure(_Cavities, VertexTerm):
     """Gauge pressure in closed cavities: a vertex term (see the module docstring).
 
     The activation of each channel is the cavity's gauge pressure in pascals, clipped to
@@ -279,7 +279,7 @@ class CavityPressure(_Cavities, VertexActuator):
 
 
 @dataclass(frozen=True, eq=False)
-class CavityVolume(_Cavities, VertexActuator):
+class CavityVolume(_Cavities, VertexTerm):
     """Volume-controlled cavities: fluid pumped in by volume (a syringe pump), a vertex term.
 
     The activation ``a`` of each channel is the cavity's volume growth: the fluid's
@@ -367,7 +367,7 @@ class CellPrep(eqx.Module):
 
 
 @dataclass(frozen=True, eq=False)
-class PneumaticCells(VolumeActuator):
+class PneumaticCells(VolumeTerm):
     """The cell model: tagged tets whose volume projection targets ``det F = a``.
 
     A volume-target term: for cell ``e`` on channel ``k`` with activation ``a_k`` (the

@@ -1,20 +1,26 @@
 """The interfaces that strategies and scene parts implement (the bottom layer, with
 :mod:`softbody._types`, the only module of softbody it imports: it imports no strategy).
 
-Actuators contribute to a step's objective in one of three ways, one base class each, so
-that the step dispatches on the type of a term rather than on which methods it happens to
-have:
+**Energy terms.** The objective of an implicit step is the inertia of the scene plus a sum
+of energy terms (:class:`Term`): the bodies' elasticity and damping, actuators (muscles,
+cavities, pneumatic cells, joint torques and servos) and whatever a user adds (a spring
+between two bodies, a membrane on a surface). A term contributes in one of three ways,
+one base class each, so that the step dispatches on the type of a term rather than on
+which methods it happens to have:
 
-* :class:`ElementActuator`: a PD-style element term on a set of tets
-  (``energy_and_stress``; its PD matrix blocks join the prefactored matrix), e.g. muscles.
-* :class:`VertexActuator`: an energy of the vertex positions (``energy_and_gradient``;
-  the matrix is left alone), e.g. cavity pressure, joint torques and servos.
-* :class:`VolumeActuator`: new targets for the volume term of some tets
+* :class:`ElementTerm`: a PD-style element term on a set of tets
+  (``energy_and_stress``; its ``4 x 4`` PD matrix blocks join the prefactored matrix),
+  e.g. muscles.
+* :class:`VertexTerm`: an energy of the vertex positions (``energy_and_gradient``), e.g.
+  cavity pressure, joint torques and servos, springs. It may add constant ``k x k`` blocks
+  on tuples of ``k <= 4`` vertices to the prefactored matrix (:meth:`VertexTerm.stencil`,
+  :meth:`VertexTerm.blocks`), as ShapeOp's constraints add their triplets.
+* :class:`VolumeTerm`: new targets for the volume term of some tets
   (``volume_targets``), e.g. pneumatic cells.
 
-Every actuator has named control channels, each with the range of values it accepts
-(:meth:`Actuator.channel_bounds`), design parameters (``init_params``) and per-rollout data
-(``prepare``).
+An actuator is a term with named control channels, each with the range of values it
+accepts (:meth:`Term.channel_bounds`); every term has design parameters (``init_params``,
+differentiable, in ``params.actuators``) and per-rollout data (``prepare``).
 """
 
 from __future__ import annotations
@@ -24,14 +30,61 @@ from typing import Callable, ClassVar, Mapping, NamedTuple
 
 import numpy as np
 
-from softbody._types import SceneError
+from softbody._types import FEATURES, SceneError
 
 
-class Actuator:
-    """Base class of actuator terms.
+@dataclasses.dataclass(frozen=True)
+class Capabilities:
+    """The scene features (:data:`softbody._types.FEATURES`) a strategy cannot handle,
+    each with the reason, and what to use instead: the one table from which
+    :func:`softbody.model.build` (for the strategies in ``Options``) and the reference
+    integrators refuse a scene before anything compiles (the pattern of MJX's
+    ``put_model``). Every strategy declares its own (``capabilities``, a class attribute);
+    the default supports every feature.
 
-    Subclasses set ``channel_names`` (a tuple of unique names, one per control channel) and
-    implement :meth:`init_params`, :meth:`prepare` and the method of their kind.
+    Attributes:
+        refuses: feature -> why the strategy cannot step a scene with it, a phrase that
+            follows the strategy's name ("has no contact handling").
+        instead: what to use for such a scene.
+    """
+
+    refuses: Mapping[str, str] = dataclasses.field(default_factory=dict)
+    instead: str = ""
+
+    def __post_init__(self):
+        unknown = set(self.refuses) - set(FEATURES)
+        if unknown:
+            raise ValueError(f"unknown scene features {sorted(unknown)}; the features are {list(FEATURES)}")
+
+    @property
+    def supported(self) -> tuple[str, ...]:
+        """The features this strategy supports, in :data:`~softbody._types.FEATURES` order."""
+        return tuple(f for f in FEATURES if f not in self.refuses)
+
+    def check(self, features, what: str) -> None:
+        """Refuse a scene whose ``features`` this strategy does not support.
+
+        Arguments:
+            features: the scene's features (:attr:`softbody._types.Model.features`).
+            what: the strategy as the user named it, e.g. ``"Options(adjoint=Unrolled())"``.
+
+        Raises:
+            SceneError: naming the first unsupported feature, why, what to use instead and
+                every feature the strategy supports.
+        """
+        for feature in FEATURES:
+            if feature in features and feature in self.refuses:
+                supported = ", ".join(self.supported) or "none of them"
+                raise SceneError(f"{what} {self.refuses[feature]} (the scene has {feature}: {FEATURES[feature]}); "
+                                 f"{self.instead}. Of the scene features {list(FEATURES)}, it supports: {supported}")
+
+
+class Term:
+    """Base class of the energy terms of a step's objective.
+
+    Subclasses set ``channel_names`` (a tuple of unique names, one per control channel;
+    :class:`VertexTerm` defaults to none) and implement :meth:`init_params`,
+    :meth:`prepare` and the method of their kind.
     """
 
     channel_names: tuple[str, ...]
@@ -50,7 +103,7 @@ class Actuator:
         n = len(self.channel_names)
         return np.full(n, -np.inf), np.full(n, np.inf)
 
-    def bind(self, rig) -> "Actuator":
+    def bind(self, rig) -> "Term":
         """The term as :func:`softbody.model.build` keeps it in a scene whose skeleton,
         bound to the mesh, is ``rig`` (a :class:`softbody.skeleton.Rig`, or ``None`` for a
         scene without one). The default returns the term itself.
@@ -63,7 +116,7 @@ class Actuator:
     #: The attributes that hold indices into the body's mesh: name -> ``"vertices"`` or ``"tets"``.
     mesh_indices: ClassVar[Mapping[str, str]] = {}
 
-    def placed(self, prefix: str, vertices: int, tets: int) -> "Actuator":
+    def placed(self, prefix: str, vertices: int, tets: int) -> "Term":
         """The term of a body in a scene (:func:`softbody.scene.assemble`): the body's
         vertices start at index ``vertices`` of the scene's vertex array and its tets at
         ``tets``; its channels are named ``prefix + name``. The default shifts the
@@ -81,7 +134,9 @@ class Actuator:
             return self  # the one unnamed body of a scene: nothing moves or is renamed
         shift = {"vertices": vertices, "tets": tets}
         changes = {key: np.asarray(getattr(self, key)) + shift[kind] for key, kind in self.mesh_indices.items()}
-        return dataclasses.replace(self, **changes, channel_names=tuple(prefix + c for c in self.channel_names))
+        if self.channel_names:
+            changes["channel_names"] = tuple(prefix + c for c in self.channel_names)
+        return dataclasses.replace(self, **changes)
 
     def init_params(self):
         """The term's differentiable design parameters (a pytree; ``()`` for none)."""
@@ -93,7 +148,7 @@ class Actuator:
         raise NotImplementedError
 
 
-class ElementActuator(Actuator):
+class ElementTerm(Term):
     """An element term on the tets ``prep.tets`` ``(m,)``.
 
     ``prepare`` returns data with ``tets`` and ``local_matrices`` ``(m, 4, 4)`` (the term's
@@ -106,15 +161,49 @@ class ElementActuator(Actuator):
         raise NotImplementedError
 
 
-class VertexActuator(Actuator):
-    """An energy of the positions that adds nothing to the PD matrix."""
+class VertexTerm(Term):
+    """An energy ``E(x)`` of the positions.
+
+    It may add constant blocks to the prefactored PD matrix: :meth:`stencil` names the
+    vertex tuples (static) and :meth:`blocks` their ``k x k`` weights (from the prepared
+    data, so they may depend on design parameters). For a term in PD form,
+    ``E = sum_e w_e/2 |sum_a c_ea x_a - p_e(x)|^2`` with projections ``p_e``, a tuple's block
+    is ``w_e c_e c_e^T``: the matrix then majorises the term's Hessian, and local-global
+    steps and the contact splitting keep their convergence. A term without blocks is
+    handled by the nonlinear solver alone (L-BFGS learns its curvature).
+
+    Without control channels by default (``channel_names = ()``); ``init_params`` and
+    ``prepare`` default to none (``()``).
+    """
+
+    channel_names: tuple[str, ...] = ()
+
+    def init_params(self):
+        """No design parameters (``()``) unless a subclass has some."""
+        return ()
+
+    def prepare(self, model, params, dminv, volume):
+        """No per-rollout data (``()``) unless a subclass needs some."""
+        return ()
 
     def energy_and_gradient(self, x, prep, activation):
         """``(energy, dE/dx (n, 3))`` at positions ``x`` ``(n, 3)``."""
         raise NotImplementedError
 
+    def stencil(self) -> np.ndarray | None:
+        """``(m, k)`` ints, ``2 <= k <= 4``: the scene's vertex indices of each of the term's
+        blocks of the PD matrix, or ``None`` (default) for a term that adds none. Static:
+        read once by :func:`softbody.model.build`."""
+        return None
 
-class VolumeActuator(Actuator):
+    def blocks(self, prep):
+        """``(m, k, k)``: the symmetric positive semi-definite weights of the blocks on
+        :meth:`stencil`'s tuples, from the term's prepared data (N/m: they join the scalar
+        ``n x n`` matrix, applied to each coordinate)."""
+        raise NotImplementedError
+
+
+class VolumeTerm(Term):
     """New targets of the volume term on some tets."""
 
     def volume_targets(self, prep, activation):
@@ -208,8 +297,11 @@ class Integrator:
     run one loop (:func:`softbody.simulate.integrate`) over an integrator: it calls
     :meth:`init` once, then :meth:`step` per step, and sets each step's result code and
     the failure handling (``throw``) the same way for all. An integrator may carry a
-    memory from step to step (a multistep method's earlier states).
+    memory from step to step (a multistep method's earlier states). Its
+    :attr:`capabilities` name the scene features it cannot step (``build`` refuses them).
     """
+
+    capabilities: ClassVar[Capabilities] = Capabilities()
 
     def init(self, model, params, state0):
         """``(prep, memory)``: the per-rollout data (the prepared scene,

@@ -43,6 +43,17 @@ class SceneError(ValueError):
     """A scene description is invalid; the message names the problem and the fix."""
 
 
+#: The scene features that strategies may or may not support (:attr:`Model.features`;
+#: :class:`softbody._interfaces.Capabilities`), each with how a scene comes to have it.
+FEATURES = {
+    "obstacles": "build(obstacles=...)",
+    "skeleton": "build(skeleton=...)",
+    "rigid bodies": "RigidBody",
+    "motion": "SoftBody(motion=...)",
+    "partly held vertices": "Fix(..., axes=...) with fewer than three axes",
+}
+
+
 @dataclass(frozen=True)
 class Options:
     """Simulation options (static: changing them recompiles).
@@ -209,6 +220,9 @@ class Model:
     pattern: linsolve.SparsityPattern
     local_to_data: np.ndarray  # (t*16,) int32 into pattern data; nnz = dropped
     diag_to_data: np.ndarray  # (n,) int32 positions of the diagonal entries
+    # per term, (m*k*k,) int32 into pattern data of its stencil's blocks (None without one);
+    # () when no term has blocks
+    block_to_data: tuple = ()
     terms: tuple = ()  # actuator terms (see softbody.simulate for the term kinds)
     channel_names: tuple[str, ...] = ()
     obstacles: tuple = ()  # obstacle objects (see softbody.obstacles)
@@ -220,6 +234,18 @@ class Model:
     @property
     def n_vertices(self) -> int:
         return self.mesh.n_vertices
+
+    @functools.cached_property
+    def features(self) -> frozenset[str]:
+        """The scene's features among :data:`FEATURES`: what a strategy must support to
+        step it (:class:`softbody._interfaces.Capabilities`)."""
+        rigid = sum(part.rigid is not None for part in self.bodies)
+        held = {"obstacles": bool(self.obstacles),
+                "skeleton": self.rig is not None and len(self.rig.skeleton.links) > rigid,
+                "rigid bodies": rigid > 0,
+                "motion": self.moving,
+                "partly held vertices": self.free_mask.shape[1] > 1}
+        return frozenset(name for name, present in held.items() if present)
 
     @property
     def n_tets(self) -> int:
@@ -264,7 +290,7 @@ class Model:
     @functools.cached_property
     def channel_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """``(lower, upper)``, each ``(n_channels,)``: the range of every control channel
-        (:meth:`softbody._interfaces.Actuator.channel_bounds`), in ``channel_names`` order."""
+        (:meth:`softbody._interfaces.Term.channel_bounds`), in ``channel_names`` order."""
         bounds = [term.channel_bounds() for term in self.terms]
         if not bounds:
             return np.zeros(0), np.zeros(0)

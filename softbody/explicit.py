@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -31,7 +32,7 @@ import numpy as np
 from softbody.elastic import deformation_gradient
 from softbody import rotation as rot
 from softbody.model import Model, Params, State, prepare
-from softbody._interfaces import Integrator
+from softbody._interfaces import Capabilities, Integrator
 from softbody._types import StepInfo
 from softbody.objective import accelerations, step_objective
 from softbody.simulate import Trajectory, _Messages, _check_controls, _raise_failure, integrate
@@ -48,6 +49,14 @@ class SymplecticEuler(Integrator):
     (:func:`softbody.simulate.integrate`) marks a non-finite step."""
 
     dt: Array
+
+    capabilities: ClassVar[Capabilities] = Capabilities(
+        refuses={"obstacles": "has no contact handling",
+                 "skeleton": "has no joint constraints",
+                 "rigid bodies": "has no joint constraints (rigid bodies are root links of reduced coordinates)",
+                 "motion": "does not move fixed vertices"},
+        instead="step such a scene with softbody.simulate.rollout and an implicit integrator "
+                "(Options(integrator=None) or BDF2())")
 
     def init(self, model: Model, params: Params, state0: State):
         return prepare(model, params, static=True), ()
@@ -105,19 +114,13 @@ def explicit_rollout(model: Model, params: Params, state0: State, controls=None,
 
     Raises:
         SceneError: bad control or force shapes.
-        ValueError: a scene with obstacles or a skeleton.
+        SceneError: a scene with obstacles, a skeleton, rigid bodies or a prescribed motion
+            (:attr:`SymplecticEuler.capabilities`).
         SimulationError: with ``throw=True``, the state became non-finite (the step
             exceeded the stability limit, see :func:`critical_time_step`); names the first
             bad step. Traced, the same message is raised at run time as an equinox error.
     """
-    if model.obstacles:
-        raise ValueError("explicit_rollout has no contact handling: build the scene without obstacles, "
-                         "or use softbody.simulate.rollout")
-    if model.moving:
-        raise ValueError("explicit_rollout does not move fixed vertices: use softbody.simulate.rollout for a "
-                         "scene with a prescribed motion")
-    if model.rig is not None:
-        raise ValueError("explicit_rollout has no joint constraints: use softbody.simulate.rollout for skeletons")
+    SymplecticEuler.capabilities.check(model.features, "explicit_rollout")
     controls, forces, n_steps = _check_controls(model, controls, forces, n_steps)
     traj, failed, branch = _explicit(model, params, state0, controls, forces, n_steps, model.options.dt)
     if not throw:

@@ -45,13 +45,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable, NamedTuple
+from typing import Callable, ClassVar, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from softbody import rotation as rot
+from softbody._interfaces import Capabilities
 from softbody._types import State
 from softbody.elastic import deformation_gradient
 from softbody.objective import solve_step, step_gradient_vjp, step_hessian, step_objective
@@ -62,7 +63,10 @@ Array = jax.Array
 
 
 class Adjoint:
-    """Base class of the differentiation modes."""
+    """Base class of the differentiation modes; :attr:`capabilities` name the scene
+    features a mode cannot differentiate (``build`` refuses them)."""
+
+    capabilities: ClassVar[Capabilities] = Capabilities()
 
     #: split the time loop into checkpointed segments of about sqrt(n_steps) steps
     segment_checkpoints: bool = False
@@ -91,6 +95,11 @@ class Unrolled(Adjoint):
     segment_checkpoints: bool = True
     extra_iterations: int = 20
     remat: bool = True
+
+    capabilities: ClassVar[Capabilities] = Capabilities(
+        refuses={"obstacles": "differentiates the iterations as they ran, but a step with contact is "
+                              "differentiated through the fixed point of its contact iteration (softbody.fixed_point)"},
+        instead="use the default adjoint, Implicit() (or ImplicitForward())")
 
     def solve(self, model, prep, state, activation, force, *, static):
 

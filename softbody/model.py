@@ -21,13 +21,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from softbody import linsolve, rotation
-from softbody._interfaces import Actuator, ElementActuator, Integrator
+from softbody._interfaces import ElementTerm, Integrator, Term, VertexTerm
 from softbody.rigid import RigidBody
 from softbody.scene import SoftBody, assemble
 from softbody._types import Model, Options, Params, Prepared, SceneError, State
 from softbody.contact import Contact
 from softbody.elastic import deformation_gradient, local_matrices, rest_geometry
-from softbody.gradients import Adjoint, Implicit, Unrolled
+from softbody.gradients import Adjoint, Implicit
 from softbody.material import pd_weights
 from softbody.skeleton import Reduced, Rig, Skeleton, SkeletonError
 from softbody.solvers import LBFGS, NonlinearSolver, Step, Vertices
@@ -97,6 +97,33 @@ def _check_partial(skeleton, obstacles) -> None:
                          "obstacle (softbody.obstacles.Plane) or clamp the vertices fully")
 
 
+def _stencils(terms, n: int) -> list:
+    """Each term's PD-block stencil ``(m, k)`` int64 (:meth:`VertexTerm.stencil`), or ``None``.
+
+    Raises:
+        SceneError: a stencil that is not ``(m, k)`` integers with ``2 <= k <= 4``, an index
+            outside the scene's vertices, or a tuple that repeats a vertex.
+    """
+    out = []
+    for term in terms:
+        stencil = term.stencil() if isinstance(term, VertexTerm) else None
+        if stencil is not None:
+            name = type(term).__name__
+            a = np.asarray(stencil)
+            if a.ndim != 2 or not 2 <= a.shape[1] <= 4 or not np.issubdtype(a.dtype, np.integer):
+                raise SceneError(f"{name}: stencil() must be (m, k) vertex indices with 2 <= k <= 4 (the contact "
+                                 f"splitting's convergence proof covers blocks on at most 4 vertices), got "
+                                 f"{a.dtype} of shape {a.shape}")
+            if a.size and (a.min() < 0 or a.max() >= n):
+                raise SceneError(f"{name}: stencil() indices must lie in [0, {n}) (the scene's vertices), got "
+                                 f"[{a.min()}, {a.max()}]")
+            if np.any(np.sort(a, axis=1)[:, 1:] == np.sort(a, axis=1)[:, :-1]):
+                raise SceneError(f"{name}: a stencil tuple repeats a vertex; each block couples distinct vertices")
+            stencil = a.astype(np.int64)
+        out.append(stencil)
+    return out
+
+
 def _compose(options: Options, rig: Rig | None, obstacles: tuple, parts: tuple) -> Step:
     """The step of a scene: its coordinates, its contact constraint and the solver, checked
     together (every refusal here happens before anything compiles)."""
@@ -120,10 +147,6 @@ def _compose(options: Options, rig: Rig | None, obstacles: tuple, parts: tuple) 
     if not isinstance(options.adjoint, Adjoint):
         raise SceneError(f"Options.adjoint must be Implicit(), ImplicitForward() or Unrolled(), got "
                          f"{options.adjoint!r}")
-    if obstacles and isinstance(options.adjoint, Unrolled):
-        raise SceneError("Unrolled differentiates the iterations as they ran, but a step with contact is "
-                         "differentiated through the fixed point of its contact iteration "
-                         "(softbody.fixed_point); use the default adjoint, Implicit() (or ImplicitForward())")
     contact = (options.contact or Contact()) if obstacles else None
     if contact is not None and len(parts) > 1 and not contact.blocks:
         contact = dataclasses.replace(contact, blocks=tuple(part.vertices for part in parts))
@@ -143,6 +166,7 @@ def build(
     *,
     skeleton: Skeleton | None = None,
     actuators: Sequence = (),
+    terms: Sequence = (),
     obstacles: Sequence = (),
     options: Options = Options(),
 ) -> tuple[Model, Params]:
@@ -163,6 +187,10 @@ def build(
             (``model.rig`` is the skeleton bound to the mesh).
         actuators: the terms that act on the skeleton (``JointTorque``, ``JointServo``);
             the terms on a body's elements belong to its ``SoftBody(actuators=...)``.
+        terms: energy terms on the scene's vertex indices
+            (:class:`~softbody._interfaces.Term` subclasses: a spring between two bodies,
+            a membrane on a surface, ...). A :class:`~softbody._interfaces.VertexTerm`'s
+            ``stencil()`` blocks join the PD matrix. Their channels follow the actuators'.
         obstacles: obstacles for contact and friction (see :mod:`softbody.obstacles`).
         options: :class:`Options`.
 
@@ -188,32 +216,43 @@ def build(
     # components keep only their diagonal, so those unknowns decouple (their update is
     # always zero). Partly held vertices keep their couplings: the matrix of axis a drops
     # them where a vertex is held along a (Model.axis_keep), one factorisation per axis.
+    for i, term in enumerate(terms):
+        if not isinstance(term, Term):
+            raise SceneError(f"terms[{i}] is a {type(term).__name__}, not an energy term; subclass "
+                             "softbody._interfaces.VertexTerm (or ElementTerm, VolumeTerm)")
+    stencils = _stencils((*scene.terms, *actuators, *terms), n)
     tets = mesh.tets.astype(np.int64)
-    rows = np.repeat(tets, 4, axis=1).ravel()
-    cols = np.tile(tets, (1, 4)).ravel()
+    blocks = [tets] + [s for s in stencils if s is not None]  # each (m, k): its k x k entries
+    rows = np.concatenate([np.repeat(b, b.shape[1], axis=1).ravel() for b in blocks])
+    cols = np.concatenate([np.tile(b, (1, b.shape[1])).ravel() for b in blocks])
     moving = ~held.all(axis=1)
     keep = (moving[rows] & moving[cols]) | (rows == cols)
     diag = np.arange(n)
     pattern, index = linsolve.SparsityPattern.from_coo(
         n, np.concatenate([rows[keep], diag]), np.concatenate([cols[keep], diag]))
     nnz = len(pattern.rows)
-    local_to_data = np.full(rows.shape, nnz, np.int32)
-    local_to_data[keep] = index[: keep.sum()]
+    entry_to_data = np.full(rows.shape, nnz, np.int32)  # nnz: an entry dropped with a held vertex
+    entry_to_data[keep] = index[: keep.sum()]
     diag_to_data = np.asarray(index[keep.sum():], np.int32)
+    local_to_data, offset = entry_to_data[: tets.size * 4], tets.size * 4
+    block_to_data = []
+    for s in stencils:
+        block_to_data.append(None if s is None else entry_to_data[offset: offset + s.size * s.shape[1]])
+        offset += 0 if s is None else s.size * s.shape[1]
     if partial:
         _check_partial(skeleton, obstacles)
 
     rig = _rig(mesh, skeleton, free, scene)
     rigid = tuple(part for part in scene.parts if part.rigid is not None)
     for i, term in enumerate(actuators):
-        if not isinstance(term, Actuator):
+        if not isinstance(term, Term):
             raise SceneError(f"actuators[{i}] is a {type(term).__name__}, not an actuator; give the skeleton's "
                              "terms from softbody.actuators (JointTorque, JointServo) or subclasses of "
-                             "softbody._interfaces.Actuator")
+                             "softbody._interfaces.Term")
         if term.mesh_indices:
             raise SceneError(f"actuators[{i}] ({type(term).__name__}) acts on a body's elements: give it to that "
                              "body, SoftBody(mesh, material, actuators=[...])")
-    terms = [term.bind(rig) for term in (*scene.terms, *actuators)]
+    terms = [term.bind(rig) for term in (*scene.terms, *actuators, *terms)]
     channels = [c for term in terms for c in term.channel_names]
     if len(set(channels)) != len(channels):
         raise SceneError(f"actuator channel names must be unique, got {channels}")
@@ -229,9 +268,14 @@ def build(
         mesh=mesh, options=options, material_names=scene.material_names, tet_material=scene.tet_material,
         fixed=fixed_idx, free_mask=(~held).astype(np.float64) if partial else free.astype(np.float64)[:, None],
         pattern=pattern, local_to_data=local_to_data, diag_to_data=diag_to_data,
+        block_to_data=tuple(block_to_data) if any(b is not None for b in block_to_data) else (),
         terms=tuple(terms), channel_names=tuple(channels), obstacles=tuple(obstacles),
         stiffness_damping=any(m.beta > 0 for m in mats), rig=rig, step=step, bodies=scene.parts,
     )
+    # The capability table: each strategy in the options refuses the scene features it cannot handle.
+    for field, strategy in (("integrator", options.integrator), ("adjoint", options.adjoint)):
+        if strategy is not None:
+            strategy.capabilities.check(model.features, f"Options({field}={type(strategy).__name__}())")
     params = Params(
         E=jnp.asarray([m.E for m in mats], jnp.float64),
         nu=jnp.asarray([m.nu for m in mats], jnp.float64),
@@ -326,10 +370,14 @@ def prepare(model: Model, params: Params, *, static: bool = False) -> Prepared:
     local = local_matrices(dminv, volume * weight)  # (t, 4, 4)
     term_prep = tuple(term.prepare(model, p, dminv, volume) for term, p in zip(model.terms, params.actuators))
     for term, tp in zip(model.terms, term_prep):
-        if isinstance(term, ElementActuator):
+        if isinstance(term, ElementTerm):
             local = local.at[tp.tets].add(tp.local_matrices)
     nnz = len(model.pattern.rows)
-    data = jnp.zeros(nnz + 1).at[model.local_to_data].add(local.reshape(-1))[:nnz]
+    data = jnp.zeros(nnz + 1).at[model.local_to_data].add(local.reshape(-1))
+    for term, tp, index in zip(model.terms, term_prep, model.block_to_data):
+        if index is not None:
+            data = data.at[index].add(jnp.reshape(term.blocks(tp), -1))
+    data = data[:nnz]
     data = data.at[model.diag_to_data].add(diag_mass)
     # With partly held vertices, one matrix per axis (linsolve.PerColumn): each drops the
     # couplings of the vertices held along its axis.

@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 
 from softbody import rotation as rot
-from softbody._interfaces import ElementActuator, VertexActuator, VolumeActuator
+from softbody._interfaces import ElementTerm, VertexTerm, VolumeTerm
 from softbody.elastic import (corotated, deformation_gradient, scatter_stress, shape_gradients, strain_rate_damping,
                               stress_derivative_product)
 from softbody._types import RESULTS, Model, Prepared, State, StepInfo
@@ -60,7 +60,7 @@ def _terms(model: Model, prep: Prepared, x_n, v_n, q_n, activation, force, stati
         offset += len(term.channel_names)
     target = 3.0
     for term, tp, a in zip(model.terms, prep.terms, slices):
-        if isinstance(term, VolumeActuator):
+        if isinstance(term, VolumeTerm):
             idx, s_t = term.volume_targets(tp, a)
             target = (jnp.full(model.n_tets, 3.0) if isinstance(target, float) else target).at[idx].set(3.0 * s_t)
 
@@ -72,7 +72,7 @@ def _terms(model: Model, prep: Prepared, x_n, v_n, q_n, activation, force, stati
             e_d, s_d = strain_rate_damping(f, f_n, r_n, prep.volume, prep.w_b, h)
             energy, stress = energy + jnp.sum(e_d), stress + s_d
         for term, tp, a in zip(model.terms, prep.terms, slices):
-            if isinstance(term, ElementActuator):
+            if isinstance(term, ElementTerm):
                 idx = jnp.asarray(tp.tets)
                 e_t, s_t = term.energy_and_stress(f[:, :, idx], tp, a)
                 energy = energy + jnp.sum(e_t)
@@ -82,7 +82,7 @@ def _terms(model: Model, prep: Prepared, x_n, v_n, q_n, activation, force, stati
     def vertex(x):
         energy, grad = 0.0, jnp.zeros_like(x)
         for term, tp, a in zip(model.terms, prep.terms, slices):
-            if isinstance(term, VertexActuator):
+            if isinstance(term, VertexTerm):
                 e_t, g_t = term.energy_and_gradient(x, tp, a)
                 energy, grad = energy + e_t, grad + g_t
         return energy, grad
@@ -98,7 +98,7 @@ def _terms(model: Model, prep: Prepared, x_n, v_n, q_n, activation, force, stati
 
 
 def _has_vertex_terms(model: Model) -> bool:
-    return any(isinstance(term, VertexActuator) for term in model.terms)
+    return any(isinstance(term, VertexTerm) for term in model.terms)
 
 
 def step_objective(model: Model, prep: Prepared, x_n, v_n, q_n, activation, force, *, static: bool):

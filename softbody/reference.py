@@ -36,7 +36,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from softbody import rotation as rot
-from softbody._interfaces import ElementActuator, VertexActuator, VolumeActuator
+from softbody._interfaces import Capabilities, ElementTerm, VertexTerm, VolumeTerm
 from softbody.elastic import corotated, deformation_gradient, shape_gradients, strain_rate_damping
 from softbody.model import Model, Params, Prepared, SceneError, State, initial_state, prepare
 from softbody._types import RESULTS, StepInfo
@@ -70,7 +70,7 @@ def _volume_target(model: Model, prep: Prepared, slices):
     terms set volume targets."""
     target = 3.0
     for term, tp, a in zip(model.terms, prep.terms, slices):
-        if isinstance(term, VolumeActuator):
+        if isinstance(term, VolumeTerm):
             idx, s_t = term.volume_targets(tp, a)
             target = jnp.full(model.n_tets, 3.0) if isinstance(target, float) else target
             target = target.at[idx].set(3.0 * s_t)
@@ -97,7 +97,7 @@ def _tet_gradients(model: Model, prep: Prepared, xe: Array, q: Array, slices, ta
     r, _ = rot.rotation(f, q, 1)
     _, stress = corotated(f, r, prep.volume, prep.w_s, prep.w_v, target)
     for term, tp, a in zip(model.terms, prep.terms, slices):
-        if isinstance(term, ElementActuator):
+        if isinstance(term, ElementTerm):
             idx = jnp.asarray(tp.tets)
             stress = stress.at[:, :, idx].add(term.energy_and_stress(f[:, :, idx], tp, a)[1])
     if damping is not None:
@@ -127,13 +127,13 @@ def _vertex_gradient(model: Model, prep: Prepared, x: Array, slices):
     """Sum of the vertex actuator terms' gradients ``(n, 3)`` (0.0 when there are none)."""
     grad = 0.0
     for term, tp, a in zip(model.terms, prep.terms, slices):
-        if isinstance(term, VertexActuator):
+        if isinstance(term, VertexTerm):
             grad = grad + term.energy_and_gradient(x, tp, a)[1]
     return grad
 
 
 def _has_vertex_terms(model: Model) -> bool:
-    return any(isinstance(term, VertexActuator) for term in model.terms)
+    return any(isinstance(term, VertexTerm) for term in model.terms)
 
 
 def _free_dofs(model: Model) -> np.ndarray:
@@ -334,22 +334,28 @@ def newton_step(model: Model, params: Params, state: State, activation=None, for
     return _newton_step(model, prep, state, _activation(model, activation), force, tol, max_iter)[:2]
 
 
-def _check_step_inputs(model: Model, activation, force):
-    _check_scene(model)
+_FREE_VERTICES = "moves every vertex freely (no reduced coordinates)"
+_NO_CONTACT = "has no contact: its steps would pass through the obstacles"
+
+#: What the Newton reference (newton_step, newton_rollout, newton_static) cannot step.
+NEWTON = Capabilities(
+    refuses={"obstacles": _NO_CONTACT, "skeleton": _FREE_VERTICES, "rigid bodies": _FREE_VERTICES,
+             "motion": "keeps fixed vertices in place"},
+    instead="step such a scene with softbody.simulate.rollout")
+
+#: What diffrax_rollout cannot integrate.
+DIFFRAX = Capabilities(
+    refuses={**NEWTON.refuses, "partly held vertices": "integrates whole free vertices"},
+    instead="step such a scene with softbody.simulate.rollout (newton_rollout takes partly held vertices)")
+
+
+def _check_step_inputs(model: Model, activation, force, capabilities: Capabilities = NEWTON,
+                       what: str = "the Newton reference"):
+    capabilities.check(model.features, what)
     if activation is not None and jnp.shape(activation) != (model.n_channels,):
         raise SceneError(f"activation must have shape ({model.n_channels},), got {jnp.shape(activation)}")
     if force is not None and jnp.shape(force) != (model.n_vertices, 3):
         raise SceneError(f"force must have shape ({model.n_vertices}, 3), got {jnp.shape(force)}")
-
-
-def _check_scene(model: Model):
-    """Refuse the scenes the Newton reference does not integrate."""
-    if model.rig is not None:
-        raise SceneError("the Newton reference moves every vertex freely: a scene with a skeleton or rigid bodies "
-                         "(reduced coordinates) steps with softbody.simulate.rollout")
-    if model.moving:
-        raise SceneError("the Newton reference keeps fixed vertices in place: build the scene's bodies without "
-                         "motion= (SoftBody(..., motion=None))")
 
 
 def _newton_step(model, prep, state, activation, force, tol, max_iter):
@@ -385,7 +391,7 @@ def newton_rollout(model: Model, params: Params, state0: State, n_steps: int | N
         ValueError: ``tol <= 0`` or ``max_iter < 1``.
         SimulationError: a step that fails (see :func:`newton_step`), naming the step.
     """
-    _check_scene(model)
+    NEWTON.check(model.features, "the Newton reference")
     controls, forces, n_steps = _check_controls(model, controls, forces, n_steps)
     prep = prepare(model, params)
     state, xs, vs, stats = state0, [state0.x], [state0.v], []
@@ -488,10 +494,7 @@ def diffrax_rollout(model: Model, params: Params, state0: State, t1: float, ts, 
         SceneError: wrong activation or force shapes, or partly held vertices.
         RuntimeError: diffrax failed (e.g. ``max_steps`` reached).
     """
-    _check_step_inputs(model, activation, force)
-    if model.axis_keep is not None:
-        raise SceneError("diffrax_rollout integrates whole free vertices: build the scene without partly held "
-                         "vertices (Fix with fewer than three axes), or use newton_rollout")
+    _check_step_inputs(model, activation, force, DIFFRAX, "diffrax_rollout")
     t0 = float(state0.t)
     ts = np.asarray(ts, np.float64)
     if not t1 > t0:

@@ -31,7 +31,7 @@ from typing import Callable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
-from softbody._interfaces import Actuator
+from softbody._interfaces import Term
 from softbody._types import SceneError
 from softbody.material import Material
 from softbody.meshing import TetMesh
@@ -101,7 +101,7 @@ class SoftBody:
     material: Material | Mapping[str, Material] = Material()
     fixed: str | Sequence[int] | Callable | Fix | Sequence[Fix] | None = dataclasses.field(default=None, kw_only=True)
     motion: Callable | None = dataclasses.field(default=None, kw_only=True)
-    actuators: Sequence[Actuator] = dataclasses.field(default=(), kw_only=True)
+    actuators: Sequence[Term] = dataclasses.field(default=(), kw_only=True)
     name: str | None = dataclasses.field(default=None, kw_only=True)
 
     def __post_init__(self):
@@ -111,10 +111,10 @@ class SoftBody:
             raise SceneError(f"SoftBody.name must be a non-empty string without '/', or None; got {self.name!r}")
         actuators = tuple(self.actuators)
         for i, term in enumerate(actuators):
-            if not isinstance(term, Actuator):
+            if not isinstance(term, Term):
                 raise SceneError(f"actuators[{i}] is a {type(term).__name__}, not an actuator; give terms from "
                                  "softbody.actuators (Muscle, CavityPressure, CavityVolume, PneumaticCells) or "
-                                 "subclasses of softbody._interfaces.Actuator")
+                                 "subclasses of softbody._interfaces.Term")
         object.__setattr__(self, "actuators", actuators)
 
 
@@ -150,7 +150,7 @@ class Assembly(NamedTuple):
     materials: list[Material]
     tet_material: np.ndarray  # (t,) int32 index into material_names
     held: np.ndarray  # (n, 3) bool: the held components of every vertex
-    terms: tuple[Actuator, ...]  # the bodies' actuator terms, on the scene's indices
+    terms: tuple[Term, ...]  # the bodies' actuator terms, on the scene's indices
     parts: tuple[BodyPart, ...]
     links: tuple[Link, ...]  # one Free root link per rigid body
 

@@ -15,18 +15,18 @@ any step that did not succeed unless called with ``throw=False``; then the codes
 ``jax.jit`` or ``jax.grad``, where ``equinox.branched_error_if`` raises it at run time)
 or not.
 
-Actuator terms (``model.terms``) come in three kinds, one base class each
+Energy terms (``model.terms``: actuators and user terms) come in three kinds, one base class each
 (:mod:`softbody._interfaces`):
 
-* :class:`~softbody._interfaces.ElementActuator`,
+* :class:`~softbody._interfaces.ElementTerm`,
   ``energy_and_stress(F_sub, prep, a) -> (energy (m,), dE/dF (3, 3, m))`` on the tets
   ``prep.tets``: PD-style element terms (muscles); their PD matrix blocks
   ``prep.local_matrices`` ``(m, 4, 4)`` are added to the prefactored matrix.
-* :class:`~softbody._interfaces.VertexActuator`,
+* :class:`~softbody._interfaces.VertexTerm`,
   ``energy_and_gradient(x, prep, a) -> (energy, dE/dx (n, 3))``: vertex terms (cavity
-  pressure as ``-p V_cavity(x)``); they leave the matrix alone (``prep.local_matrices``
-  is ``None``).
-* :class:`~softbody._interfaces.VolumeActuator`,
+  pressure as ``-p V_cavity(x)``, springs); those with a ``stencil()`` add ``blocks(prep)``
+  ``(m, k, k)`` on vertex tuples to the prefactored matrix, the others leave it alone.
+* :class:`~softbody._interfaces.VolumeTerm`,
   ``volume_targets(prep, a) -> (tets (m,), s (m,))``: the volume term of those tets
   targets ``det F = s^3`` instead of 1 (pneumatic cells: ``s = a^(1/3)``).
 
@@ -320,7 +320,16 @@ def step(model: Model, prep: Prepared, state: State, activation=None, force=None
 
     Returns:
         ``(next_state, info)``; ``info.result`` is not set (0): :func:`rollout` sets it.
+
+    Raises:
+        SceneError: the scene's integrator (``Options.integrator``) is not implicit Euler:
+            one step of another would need its memory (use :func:`rollout`).
     """
+    integrator = integrator_of(model)
+    if type(integrator) is not ImplicitEuler:
+        raise SceneError(f"step takes one implicit-Euler step, but this scene's integrator is "
+                         f"{type(integrator).__name__}() (Options.integrator), whose steps need the earlier states: "
+                         "use rollout(..., n_steps=k), or build the scene with Options(integrator=None)")
     new, _, info = ImplicitEuler().step(model, prep, state, (), _activation(model, activation), force)
     return new, info
 
