@@ -8,7 +8,6 @@ from __future__ import annotations
 
 from typing import Callable, NamedTuple
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 
@@ -22,6 +21,60 @@ from softbody.solvers import Solution, StepProblem
 Array = jax.Array
 
 
+
+
+def activation_slices(model: Model, activation) -> tuple[Array, ...]:
+    """Each term's slice ``(c_i,)`` of the activation vector ``(n_channels,)`` (zeros for ``None``)."""
+    a = jnp.zeros(model.n_channels) if activation is None else activation
+    slices, offset = [], 0
+    for term in model.terms:
+        slices.append(a[offset:offset + len(term.channel_names)])
+        offset += len(term.channel_names)
+    return tuple(slices)
+
+
+def volume_target(model: Model, prep: Prepared, slices):
+    """The volume term's target ``3 s`` (it aims at ``det F = s^3``): 3.0, or ``(t,)`` where
+    :class:`~softbody._interfaces.VolumeTerm` terms set targets (fixed per step)."""
+    target = 3.0
+    for term, tp, a in zip(model.terms, prep.terms, slices):
+        if isinstance(term, VolumeTerm):
+            idx, s_t = term.volume_targets(tp, a)
+            target = (jnp.full(model.n_tets, 3.0) if isinstance(target, float) else target).at[idx].set(3.0 * s_t)
+    return target
+
+
+def tet_stress(model: Model, prep: Prepared, f, r, slices, target, damping=None):
+    """The per-tet terms at deformation gradients ``f`` ``(3, 3, t)`` with rotations ``r``:
+    ``(energy (), stress dE/dF (3, 3, t))`` of the elasticity, the strain-rate damping
+    (``damping(f, r) -> (energy (t,), stress)``, or ``None``) and the element terms."""
+    energy, stress = corotated(f, r, prep.volume, prep.w_s, prep.w_v, target)
+    energy = jnp.sum(energy)
+    if damping is not None:
+        e_d, s_d = damping(f, r)
+        energy, stress = energy + jnp.sum(e_d), stress + s_d
+    for term, tp, a in zip(model.terms, prep.terms, slices):
+        if isinstance(term, ElementTerm):
+            idx = jnp.asarray(tp.tets)
+            e_t, s_t = term.energy_and_stress(f[:, :, idx], tp, a)
+            energy = energy + jnp.sum(e_t)
+            stress = stress.at[:, :, idx].add(s_t)
+    return energy, stress
+
+
+def vertex_energy(model: Model, prep: Prepared, x, slices):
+    """``(energy (), gradient (n, 3))`` of the :class:`~softbody._interfaces.VertexTerm` terms at ``x``."""
+    energy, grad = 0.0, jnp.zeros_like(x)
+    for term, tp, a in zip(model.terms, prep.terms, slices):
+        if isinstance(term, VertexTerm):
+            e_t, g_t = term.energy_and_gradient(x, tp, a)
+            energy, grad = energy + e_t, grad + g_t
+    return energy, grad
+
+
+def has_vertex_terms(model: Model) -> bool:
+    """Whether some term is an energy of the positions (:class:`~softbody._interfaces.VertexTerm`)."""
+    return any(isinstance(term, VertexTerm) for term in model.terms)
 
 
 class _Terms(NamedTuple):
@@ -53,39 +106,16 @@ def _terms(model: Model, prep: Prepared, x_n, v_n, q_n, activation, force, stati
         f_n = deformation_gradient(model, prep.dminv, x_n)
         r_n, _ = rot.rotation(f_n, q_n, iters + 1)
 
-    # Each term's slice of the activation vector, and the volume targets (fixed per step).
-    slices, offset = [], 0
-    for term in model.terms:
-        slices.append(activation[offset:offset + len(term.channel_names)])
-        offset += len(term.channel_names)
-    target = 3.0
-    for term, tp, a in zip(model.terms, prep.terms, slices):
-        if isinstance(term, VolumeTerm):
-            idx, s_t = term.volume_targets(tp, a)
-            target = (jnp.full(model.n_tets, 3.0) if isinstance(target, float) else target).at[idx].set(3.0 * s_t)
+    slices = activation_slices(model, activation)
+    target = volume_target(model, prep, slices)
+    damping = (lambda f, r: strain_rate_damping(f, f_n, r_n, prep.volume, prep.w_b, h)) if damped else None
 
     def tet(f, q):
         r, q = rot.rotation(f, q, iters)
-        energy, stress = corotated(f, r, prep.volume, prep.w_s, prep.w_v, target)
-        energy = jnp.sum(energy)
-        if damped:
-            e_d, s_d = strain_rate_damping(f, f_n, r_n, prep.volume, prep.w_b, h)
-            energy, stress = energy + jnp.sum(e_d), stress + s_d
-        for term, tp, a in zip(model.terms, prep.terms, slices):
-            if isinstance(term, ElementTerm):
-                idx = jnp.asarray(tp.tets)
-                e_t, s_t = term.energy_and_stress(f[:, :, idx], tp, a)
-                energy = energy + jnp.sum(e_t)
-                stress = stress.at[:, :, idx].add(s_t)
-        return energy, stress, q
+        return (*tet_stress(model, prep, f, r, slices, target, damping), q)
 
     def vertex(x):
-        energy, grad = 0.0, jnp.zeros_like(x)
-        for term, tp, a in zip(model.terms, prep.terms, slices):
-            if isinstance(term, VertexTerm):
-                e_t, g_t = term.energy_and_gradient(x, tp, a)
-                energy, grad = energy + e_t, grad + g_t
-        return energy, grad
+        return vertex_energy(model, prep, x, slices)
 
     def inertia(x):
         if static:
@@ -95,10 +125,6 @@ def _terms(model: Model, prep: Prepared, x_n, v_n, q_n, activation, force, stati
         return phi, mass * dx / h**2 + prep.mass_alpha * dn / h
 
     return _Terms(tet=tet, vertex=vertex, inertia=inertia, scale=scale)
-
-
-def _has_vertex_terms(model: Model) -> bool:
-    return any(isinstance(term, VertexTerm) for term in model.terms)
 
 
 def step_objective(model: Model, prep: Prepared, x_n, v_n, q_n, activation, force, *, static: bool):
@@ -118,7 +144,7 @@ def step_objective(model: Model, prep: Prepared, x_n, v_n, q_n, activation, forc
         energy, stress, q = terms.tet(f, q)
         phi, grad = terms.inertia(x)
         phi, grad = phi + energy, grad + scatter_stress(model, prep.dminv, stress)
-        if _has_vertex_terms(model):
+        if has_vertex_terms(model):
             e_v, g_v = terms.vertex(x)
             phi, grad = phi + e_v, grad + g_v
         return phi, grad * free, q
@@ -152,7 +178,7 @@ def step_hessian(model: Model, prep: Prepared, x_n, v_n, q_n, activation, force,
     eye = jnp.eye(9, dtype=f.dtype).reshape(9, 3, 3, 1)
     dpdf = jnp.stack([tangent(jnp.broadcast_to(e, f.shape)) for e in eye])  # (kl, i, j, t)
     diagonal = 0.0 if static else prep.mass / h**2 + prep.mass_alpha / h
-    vertex = jax.linearize(lambda x: terms.vertex(x)[1], x)[1] if _has_vertex_terms(model) else None
+    vertex = jax.linearize(lambda x: terms.vertex(x)[1], x)[1] if has_vertex_terms(model) else None
 
     product = stress_derivative_product(model, prep.dminv, dpdf)
 
@@ -204,7 +230,7 @@ def step_gradient_vjp(model: Model, prep: Prepared, x_n, v_n, q_n, activation, f
         _, kd = jax.jvp(lambda f: held.tet(f, q)[1], (f0,), (d0,))
         out = rot.dot(terms.tet(f0, q)[1], d).sum() + rot.dot(sg(kd), f).sum()
         out = out + jnp.sum(terms.inertia(y)[1] * lam)
-        if _has_vertex_terms(model):
+        if has_vertex_terms(model):
             out = out + jnp.sum(terms.vertex(y)[1] * lam)
         return out
 

@@ -36,11 +36,12 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from softbody import rotation as rot
-from softbody._interfaces import Capabilities, ElementTerm, VertexTerm, VolumeTerm
-from softbody.elastic import corotated, deformation_gradient, shape_gradients, strain_rate_damping
+from softbody._interfaces import Capabilities
+from softbody.elastic import deformation_gradient, shape_gradients, strain_rate_damping
 from softbody.model import Model, Params, Prepared, SceneError, State, initial_state, prepare
 from softbody._types import RESULTS, StepInfo
-from softbody.objective import step_objective
+from softbody.objective import (activation_slices, has_vertex_terms, step_objective, tet_stress, vertex_energy,
+                                volume_target)
 from softbody.simulate import SimulationError, Trajectory, _activation, _check_controls
 
 Array = jax.Array
@@ -55,28 +56,6 @@ Array = jax.Array
 _ROTATION_STEPS = 16
 
 
-def _activation_slices(model: Model, activation) -> tuple[Array, ...]:
-    """Each actuator term's slice of the activation vector ``(n_channels,)``."""
-    a = jnp.zeros(model.n_channels) if activation is None else jnp.asarray(activation)
-    slices, offset = [], 0
-    for term in model.terms:
-        slices.append(a[offset:offset + len(term.channel_names)])
-        offset += len(term.channel_names)
-    return tuple(slices)
-
-
-def _volume_target(model: Model, prep: Prepared, slices):
-    """The volume term's target ``3 s`` (it aims at ``det F = s^3``): 3, or ``(t,)`` where
-    terms set volume targets."""
-    target = 3.0
-    for term, tp, a in zip(model.terms, prep.terms, slices):
-        if isinstance(term, VolumeTerm):
-            idx, s_t = term.volume_targets(tp, a)
-            target = jnp.full(model.n_tets, 3.0) if isinstance(target, float) else target
-            target = target.at[idx].set(3.0 * s_t)
-    return target
-
-
 def _exact_rotations(f: Array, q: Array) -> Array:
     """Quaternions ``(4, t)`` of the rotations maximising ``tr(R^T F)``, warm-started from
     ``q`` (no derivative: differentiate through :func:`softbody.rotation.rotation` at them)."""
@@ -89,19 +68,13 @@ def _tet_gradients(model: Model, prep: Prepared, xe: Array, q: Array, slices, ta
 
     Each tet's gradient depends on its own vertex positions ``xe`` ``(t, 4, 3)`` only.
     ``q`` are the maximising rotations at ``xe`` (the derivative of ``R`` comes from
-    :func:`softbody.rotation.rotation`'s implicit rule). ``damping(f, r) -> (3, 3, t)``
+    :func:`softbody.rotation.rotation`'s implicit rule). ``damping(f, r) -> (energy (t,), stress (3, 3, t))``
     adds a damping stress.
     """
     g = shape_gradients(prep.dminv)  # (4, 3, t)
     f = jnp.einsum("tai,ajt->ijt", xe, g)
     r, _ = rot.rotation(f, q, 1)
-    _, stress = corotated(f, r, prep.volume, prep.w_s, prep.w_v, target)
-    for term, tp, a in zip(model.terms, prep.terms, slices):
-        if isinstance(term, ElementTerm):
-            idx = jnp.asarray(tp.tets)
-            stress = stress.at[:, :, idx].add(term.energy_and_stress(f[:, :, idx], tp, a)[1])
-    if damping is not None:
-        stress = stress + damping(f, r)
+    _, stress = tet_stress(model, prep, f, r, slices, target, damping)
     return jnp.einsum("ijt,ajt->tai", stress, g)
 
 
@@ -124,16 +97,8 @@ def _scatter(model: Model, per_tet: Array) -> Array:
 
 
 def _vertex_gradient(model: Model, prep: Prepared, x: Array, slices):
-    """Sum of the vertex actuator terms' gradients ``(n, 3)`` (0.0 when there are none)."""
-    grad = 0.0
-    for term, tp, a in zip(model.terms, prep.terms, slices):
-        if isinstance(term, VertexTerm):
-            grad = grad + term.energy_and_gradient(x, tp, a)[1]
-    return grad
-
-
-def _has_vertex_terms(model: Model) -> bool:
-    return any(isinstance(term, VertexTerm) for term in model.terms)
+    """Sum of the vertex terms' gradients ``(n, 3)``."""
+    return vertex_energy(model, prep, x, slices)[1]
 
 
 def _free_dofs(model: Model) -> np.ndarray:
@@ -166,8 +131,8 @@ def _element_hessians(model, prep, x_n, q_n, activation, x, q, *, static):
     """Per-tet Hessians ``(t, 12, 12)`` of the elastic, element actuator and strain-rate
     damping energies at ``x`` (exact rotations ``q``)."""
     h = model.options.dt
-    slices = _activation_slices(model, activation)
-    target = _volume_target(model, prep, slices)
+    slices = activation_slices(model, activation)
+    target = volume_target(model, prep, slices)
     damping = None
     if not static and model.stiffness_damping:
         # The damping frame R_n, found as the step objective finds it.
@@ -175,7 +140,7 @@ def _element_hessians(model, prep, x_n, q_n, activation, x, q, *, static):
         r_n, _ = rot.rotation(f_n, q_n, model.options.rotation_iterations + 1)
 
         def damping(f, r):
-            return strain_rate_damping(f, f_n, r_n, prep.volume, prep.w_b, h)[1]
+            return strain_rate_damping(f, f_n, r_n, prep.volume, prep.w_b, h)
 
     xe = x[jnp.asarray(model.mesh.tets)]
     return _tet_blocks(lambda z: _tet_gradients(model, prep, z, q, slices, target, damping), xe)
@@ -184,7 +149,7 @@ def _element_hessians(model, prep, x_n, q_n, activation, x, q, *, static):
 @functools.partial(jax.jit, static_argnames=("model",))
 def _vertex_hessian(model, prep, activation, x):
     """Dense Hessian ``(n, 3, n, 3)`` of the vertex actuator terms at ``x``."""
-    slices = _activation_slices(model, activation)
+    slices = activation_slices(model, activation)
     return jax.jacfwd(lambda y: _vertex_gradient(model, prep, y, slices))(x)
 
 
@@ -236,7 +201,7 @@ def _newton(model, prep, x_n, v_n, q_n, activation, force, x0, *, static, tol, m
         diagonal = np.zeros(3 * model.n_vertices)
     else:
         diagonal = np.repeat(np.asarray(prep.mass[:, 0] / h**2 + prep.mass_alpha[:, 0] / h), 3)
-    vertex_terms = _has_vertex_terms(model)
+    vertex_terms = has_vertex_terms(model)
 
     def evaluate(x, q):
         phi, g, q, scale = _evaluate(model, prep, x_n, v_n, q_n, activation, force, x, q, static=static)
@@ -504,10 +469,10 @@ def diffrax_rollout(model: Model, params: Params, state0: State, t1: float, ts, 
     solver = diffrax.Kvaerno5() if solver is None else solver
     prep = prepare(model, params)
     free = np.flatnonzero(model.free_mask[:, 0] > 0)
-    slices = _activation_slices(model, activation)
+    slices = activation_slices(model, activation)
     load = prep.mass * jnp.asarray(model.options.gravity) + (0.0 if force is None else jnp.asarray(force))
     data = _OdeData(prep=dataclasses.replace(prep, factor=None, data=None), x0=state0.x, q0=state0.rot,
-                    slices=slices, target=jnp.asarray(_volume_target(model, prep, slices)), load=load)
+                    slices=slices, target=jnp.asarray(volume_target(model, prep, slices)), load=load)
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(_vector_field), solver, t0=t0, t1=float(t1), dt0=None,
         y0=(jnp.zeros((len(free), 3)), state0.v[free]), args=(model, data),
@@ -551,7 +516,7 @@ def _ode_parts(model: Model, data: _OdeData, u, w):
                 # The implicit-Euler stress V w_b / h R_n sym(R_n^T (F - F_n)) with
                 # F - F_n = h F' in the limit h -> 0, i.e. evaluated with h = 1 on F + F'.
                 f_rate = jnp.einsum("tai,ajt->ijt", ve, g)
-                return strain_rate_damping(f + f_rate, f, r, prep.volume, prep.w_b, 1.0)[1]
+                return strain_rate_damping(f + f_rate, f, r, prep.volume, prep.w_b, 1.0)
         return _tet_gradients(model, prep, xe, q, data.slices, data.target, damping)
 
     return free, x, v, tet_forces
@@ -593,7 +558,7 @@ def _acceleration_jvp(model, primals, tangents):
     if not isinstance(du, SymbolicZero):
         k_x = _dense_free_matrix(model, _tet_blocks(lambda z: tet_forces(z, ve), xe))
         tangent = tangent - k_x @ du.reshape(-1)
-        if _has_vertex_terms(model):
+        if has_vertex_terms(model):
             dx = jnp.zeros_like(x).at[free].set(du)
             hv = jax.jvp(lambda y: _vertex_gradient(model, data.prep, y, data.slices), (x,), (dx,))[1]
             tangent = tangent - hv[free].reshape(-1)
