@@ -10,6 +10,7 @@
 
 Scenes: :func:`build`, :class:`SoftBody`, :class:`RigidBody`, :func:`prepare`, :func:`initial_state`,
 :class:`Material`, :class:`Skeleton`, :class:`Fix` (vertices held in chosen components),
+:class:`Membrane` (a membrane term on triangles, e.g. fabric bonded to a body),
 :class:`Options`, :class:`Model`, :class:`Params`, :class:`State`, :class:`SceneError`. A
 scene owns its physics: ``build([SoftBody(mesh, material, fixed=..., actuators=[...]), ...],
 skeleton=..., obstacles=[...])`` composes the step (the skeleton's reduced
@@ -60,6 +61,7 @@ _NAMES = {
     **dict.fromkeys(("Fix", "SoftBody"), "softbody.scene"),
     "Material": "softbody.material",
     "RigidBody": "softbody.rigid",
+    "Membrane": "softbody.shell",
     "Skeleton": "softbody.skeleton",
     "Contact": "softbody.contact",
     "RESULTS": "softbody._types",
