@@ -202,6 +202,12 @@ class VertexTerm(Term):
         ``n x n`` matrix, applied to each coordinate)."""
         raise NotImplementedError
 
+    def mass(self, prep):
+        """``(m, k)`` lumped masses (kg) that the vertices of :meth:`stencil`'s tuples gain
+        (inertia and weight, e.g. a membrane's areal density), from the prepared data; or
+        ``None`` (default) for a term without mass."""
+        return None
+
 
 class VolumeTerm(Term):
     """New targets of the volume term on some tets."""

@@ -369,6 +369,13 @@ def prepare(model: Model, params: Params, *, static: bool = False) -> Prepared:
         diag_mass = mass / h**2 + mass_alpha / h
     local = local_matrices(dminv, volume * weight)  # (t, 4, 4)
     term_prep = tuple(term.prepare(model, p, dminv, volume) for term, p in zip(model.terms, params.actuators))
+    added = [(term.stencil(), term.mass(tp)) for term, tp in zip(model.terms, term_prep) if isinstance(term, VertexTerm)]
+    added = [(jnp.asarray(s), m) for s, m in added if m is not None]
+    if added:  # terms with mass of their own (a membrane's areal density)
+        extra = sum(jnp.zeros(model.n_vertices).at[s].add(m) for s, m in added)
+        mass = mass + extra
+        if not static:
+            diag_mass = diag_mass + extra / h**2
     for term, tp in zip(model.terms, term_prep):
         if isinstance(term, ElementTerm):
             local = local.at[tp.tets].add(tp.local_matrices)

@@ -19,8 +19,9 @@ gradients) to the prefactored PD matrix: ``2 mu`` for the rotation term, and ``2
 bounds the area term's rank-one Hessian (``|R|^2 = 2``), as ``3 lambda`` does for a tet's
 volume term.
 
-Not yet here: bending, the membrane's own mass (it adds stiffness only: a fabric layer's
-mass is neglected beside the body's), shells without a tet body, contact of shell faces.
+An areal density gives each vertex a third of its triangles' mass (inertia and weight).
+
+Not yet here: bending, shells without a tet body, contact of shell faces.
 """
 
 from __future__ import annotations
@@ -41,12 +42,13 @@ Array = jax.Array
 
 
 class MembraneParams(eqx.Module):
-    """Design parameters of a membrane: Young's modulus ``E`` (Pa), Poisson's ratio ``nu``
-    and thickness (m), scalars."""
+    """Design parameters of a membrane: Young's modulus ``E`` (Pa), Poisson's ratio ``nu``,
+    thickness (m) and areal density (kg/m^2), scalars."""
 
     E: Array
     nu: Array
     thickness: Array
+    areal_density: Array
 
 
 def _rest_frames(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -75,8 +77,10 @@ class Membrane(VertexTerm):
         triangles: ``(m, 3)`` vertex indices.
         dminv: ``(m, 2, 2)`` inverse rest edge matrices (each triangle's own frame).
         area: ``(m,)`` rest areas, m^2.
-        E, nu, thickness: initial design parameters (``params.actuators[i]``,
-            :class:`MembraneParams`): Pa, -, m.
+        E, nu, thickness, areal_density: initial design parameters
+            (``params.actuators[i]``, :class:`MembraneParams`): Pa, -, m, kg/m^2. A
+            membrane built with areal density 0 has no mass (and no gradient with respect
+            to it); otherwise each triangle adds a third of its mass to each vertex.
     """
 
     triangles: np.ndarray
@@ -85,11 +89,13 @@ class Membrane(VertexTerm):
     E: float
     nu: float
     thickness: float
+    areal_density: float = 0.0
 
     mesh_indices: ClassVar = {"triangles": "vertices"}
 
     @classmethod
-    def on(cls, mesh, triangles, *, E: float, nu: float, thickness: float) -> "Membrane":
+    def on(cls, mesh, triangles, *, E: float, nu: float, thickness: float,
+           areal_density: float = 0.0) -> "Membrane":
         """A membrane on ``triangles`` of ``mesh``, flat or curved at rest as the mesh is.
 
         Arguments:
@@ -97,7 +103,8 @@ class Membrane(VertexTerm):
                 (the membrane's rest shape).
             triangles: ``(m, 3)`` vertex indices, or the name of a region of the mesh whose
                 faces they are.
-            E: Young's modulus, Pa (> 0); nu: Poisson's ratio in ``[0, 0.5)``; thickness: m (> 0).
+            E: Young's modulus, Pa (> 0); nu: Poisson's ratio in ``[0, 0.5)``; thickness: m (> 0);
+                areal_density: kg/m^2 (>= 0; 0: a membrane without mass).
 
         Raises:
             SceneError: an unknown region or one without faces, indices outside the mesh,
@@ -117,9 +124,10 @@ class Membrane(VertexTerm):
                              f"shape {tri.shape}")
         if tri.min() < 0 or tri.max() >= len(points):
             raise SceneError(f"Membrane: triangle indices must lie in [0, {len(points)})")
-        if not (np.isfinite(E) and E > 0 and np.isfinite(thickness) and thickness > 0 and 0 <= nu < 0.5):
-            raise SceneError(f"Membrane needs E > 0, thickness > 0 and 0 <= nu < 0.5, got E={E}, nu={nu}, "
-                             f"thickness={thickness}")
+        if not (np.isfinite(E) and E > 0 and np.isfinite(thickness) and thickness > 0 and 0 <= nu < 0.5
+                and np.isfinite(areal_density) and areal_density >= 0):
+            raise SceneError(f"Membrane needs E > 0, thickness > 0, 0 <= nu < 0.5 and areal_density >= 0, got E={E}, "
+                             f"nu={nu}, thickness={thickness}, areal_density={areal_density}")
         scale = np.ptp(points[tri.ravel()], axis=0).max()
         doubled = np.linalg.norm(np.cross(points[tri[:, 1]] - points[tri[:, 0]], points[tri[:, 2]] - points[tri[:, 0]]),
                                  axis=1)
@@ -128,17 +136,25 @@ class Membrane(VertexTerm):
             raise SceneError(f"Membrane: {len(bad)} degenerate (zero-area) triangles, e.g. {tri[bad[0]].tolist()}; "
                              "remove them from the selection")
         dminv, area = _rest_frames(points, tri)
-        return cls(tri.astype(np.int32), dminv, area, float(E), float(nu), float(thickness))
+        return cls(tri.astype(np.int32), dminv, area, float(E), float(nu), float(thickness), float(areal_density))
 
     def init_params(self) -> MembraneParams:
-        return MembraneParams(E=jnp.asarray(self.E), nu=jnp.asarray(self.nu), thickness=jnp.asarray(self.thickness))
+        return MembraneParams(E=jnp.asarray(self.E), nu=jnp.asarray(self.nu), thickness=jnp.asarray(self.thickness),
+                              areal_density=jnp.asarray(self.areal_density))
 
     def prepare(self, model, params: MembraneParams, dminv, volume) -> tuple:
-        """``(mu t A (m,), lam* t A (m,))``: the weights of the two terms per triangle."""
+        """``(mu t A (m,), lam* t A (m,), rho_A A (m,))``: the weights of the two terms and
+        the mass per triangle."""
         mu = params.E / (2.0 * (1.0 + params.nu))
         lam = params.E * params.nu / (1.0 - params.nu**2)
-        at = jnp.asarray(self.area) * params.thickness
-        return mu * at, lam * at
+        area = jnp.asarray(self.area)
+        return mu * area * params.thickness, lam * area * params.thickness, params.areal_density * area
+
+    def mass(self, prep):
+        """A third of each triangle's mass on each of its vertices (``None`` without density)."""
+        if self.areal_density == 0.0:
+            return None
+        return jnp.broadcast_to(prep[2][:, None] / 3.0, self.triangles.shape)
 
     def stencil(self) -> np.ndarray:
         return self.triangles
@@ -149,12 +165,12 @@ class Membrane(VertexTerm):
         return jnp.concatenate([-jnp.sum(dminv, axis=1, keepdims=True), dminv], axis=1)
 
     def blocks(self, prep) -> Array:
-        mu_at, lam_at = prep
+        mu_at, lam_at, _ = prep
         g = self._shape_gradients()
         return (2.0 * mu_at + 2.0 * lam_at)[:, None, None] * jnp.einsum("mai,mbi->mab", g, g)
 
     def energy_and_gradient(self, x, prep, activation):
-        mu_at, lam_at = prep
+        mu_at, lam_at, _ = prep
         g = self._shape_gradients()
         tri = jnp.asarray(self.triangles)
 
