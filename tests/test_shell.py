@@ -2,6 +2,8 @@
 PD blocks bounding the Hessian, and a fabric-reinforced pneumatic finger that bends further
 and stretches less, with the fabric's stiffness as a differentiable design parameter."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -167,8 +169,8 @@ def test_the_fabric_stiffness_gradient_matches_central_differences(finger):
 
     def height(log_scales):
         fabric = params.actuators[1]
-        fabric = fabric.__class__(E=fabric.E * jnp.exp(log_scales[0]), nu=fabric.nu,
-                                  thickness=fabric.thickness * jnp.exp(log_scales[1]))
+        fabric = dataclasses.replace(fabric, E=fabric.E * jnp.exp(log_scales[0]),
+                                     thickness=fabric.thickness * jnp.exp(log_scales[1]))
         p = params.replace(actuators=(params.actuators[0], fabric))
         x, _ = solve_static(model, p, activation=jnp.array([PRESSURE]), x0=jnp.asarray(mesh.points))
         return jnp.mean(x[tip, 2])
