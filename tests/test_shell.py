@@ -144,7 +144,7 @@ def test_a_fabric_layer_makes_the_finger_bend_further_and_stretch_less(finger):
     edge = edge[np.argsort(points[edge, 0])]  # a bottom edge of the finger, base to tip
     moved, strain = {}, {}
     for name, (model, params) in (("alone", alone), ("bonded", bonded)):
-        x, info = solve_static(model, params, activation=jnp.array([PRESSURE]), x0=jnp.asarray(points))
+        x, _ = solve_static(model, params, activation=jnp.array([PRESSURE]), x0=jnp.asarray(points))
         x = np.asarray(x)
         moved[name] = x[tip].mean(axis=0) - points[tip].mean(axis=0)
         strain[name] = np.sum(np.linalg.norm(np.diff(x[edge], axis=0), axis=1)) / np.ptp(points[edge, 0]) - 1
@@ -185,7 +185,7 @@ def test_a_heavy_fabric_weighs_as_its_lumped_loads(finger):
     """A fabric of 0.3 kg/m^2 adds ``rho_A A`` to the scene's mass, and under gravity the
     finger sags exactly as with a massless fabric loaded by ``rho_A A_e g / 3`` on each of
     its triangles' vertices (to 1e-8 of the sag, at solve tolerance 1e-9)."""
-    mesh, _, _, (chamber, bottom, silicone) = finger
+    mesh, _, _, (_, bottom, silicone) = finger
     rho = 0.3
     heavy = Membrane.on(mesh, bottom, E=E, nu=NU, thickness=T, areal_density=rho)
     light = Membrane.on(mesh, bottom, E=E, nu=NU, thickness=T)

@@ -85,7 +85,7 @@ def _pair(z0=0.0, material=MATERIAL, **options):
 def test_spring_blocks_join_the_pd_matrix():
     """The matrix with the springs minus the one without is ``k`` times the springs' graph
     Laplacian; with one end of every spring held, only the free end's diagonal changes."""
-    model, params, spring = _pair()
+    model, _, spring = _pair()
     a, b = _cubes()
 
     def difference(fixed):
