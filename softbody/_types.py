@@ -220,8 +220,7 @@ class Model:
     pattern: linsolve.SparsityPattern
     local_to_data: np.ndarray  # (t*16,) int32 into pattern data; nnz = dropped
     diag_to_data: np.ndarray  # (n,) int32 positions of the diagonal entries
-    # per term, (m*k*k,) int32 into pattern data of its stencil's blocks (None without one);
-    # () when no term has blocks
+    # per term, (m*k*k,) int32 into pattern data of its stencil's blocks (None without one)
     block_to_data: tuple = ()
     terms: tuple = ()  # actuator terms (see softbody.simulate for the term kinds)
     channel_names: tuple[str, ...] = ()

@@ -113,9 +113,8 @@ def explicit_rollout(model: Model, params: Params, state0: State, controls=None,
         ``RESULTS.success`` before it.
 
     Raises:
-        SceneError: bad control or force shapes.
-        SceneError: a scene with obstacles, a skeleton, rigid bodies or a prescribed motion
-            (:attr:`SymplecticEuler.capabilities`).
+        SceneError: bad control or force shapes; a scene with obstacles, a skeleton, rigid
+            bodies or a prescribed motion (:attr:`SymplecticEuler.capabilities`).
         SimulationError: with ``throw=True``, the state became non-finite (the step
             exceeded the stability limit, see :func:`critical_time_step`); names the first
             bad step. Traced, the same message is raised at run time as an equinox error.

@@ -268,7 +268,7 @@ def build(
         mesh=mesh, options=options, material_names=scene.material_names, tet_material=scene.tet_material,
         fixed=fixed_idx, free_mask=(~held).astype(np.float64) if partial else free.astype(np.float64)[:, None],
         pattern=pattern, local_to_data=local_to_data, diag_to_data=diag_to_data,
-        block_to_data=tuple(block_to_data) if any(b is not None for b in block_to_data) else (),
+        block_to_data=tuple(block_to_data),
         terms=tuple(terms), channel_names=tuple(channels), obstacles=tuple(obstacles),
         stiffness_damping=any(m.beta > 0 for m in mats), rig=rig, step=step, bodies=scene.parts,
     )

@@ -356,7 +356,7 @@ def newton_rollout(model: Model, params: Params, state0: State, n_steps: int | N
         ValueError: ``tol <= 0`` or ``max_iter < 1``.
         SimulationError: a step that fails (see :func:`newton_step`), naming the step.
     """
-    NEWTON.check(model.features, "the Newton reference")
+    _check_step_inputs(model, None, None)
     controls, forces, n_steps = _check_controls(model, controls, forces, n_steps)
     prep = prepare(model, params)
     state, xs, vs, stats = state0, [state0.x], [state0.v], []

@@ -52,8 +52,8 @@ class MembraneParams(eqx.Module):
 
 
 def _rest_frames(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Each triangle's inverse rest edge matrix ``(m, 2, 2)`` in its own orthonormal frame
-    and its area ``(m,)``."""
+    """Each triangle's shape gradients ``(m, 3, 2)`` (``F = sum_a x_a g_a^T`` maps its own
+    orthonormal rest frame to space) and its area ``(m,)``."""
     p = points[triangles]
     e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
     normal = np.cross(e1, e2)
@@ -62,7 +62,8 @@ def _rest_frames(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray,
     w = np.cross(normal / (2 * area)[:, None], u)
     dm = np.stack([np.stack([np.sum(u * e1, 1), np.sum(u * e2, 1)], 1),
                    np.stack([np.sum(w * e1, 1), np.sum(w * e2, 1)], 1)], 1)
-    return np.linalg.inv(dm), area
+    dminv = np.linalg.inv(dm)
+    return np.concatenate([-dminv.sum(axis=1, keepdims=True), dminv], axis=1), area
 
 
 @dataclass(frozen=True, eq=False)
@@ -75,7 +76,8 @@ class Membrane(VertexTerm):
 
     Attributes:
         triangles: ``(m, 3)`` vertex indices.
-        dminv: ``(m, 2, 2)`` inverse rest edge matrices (each triangle's own frame).
+        gradients: ``(m, 3, 2)`` shape gradients: ``F = sum_a x_a g_a^T`` (each triangle's own
+            rest frame).
         area: ``(m,)`` rest areas, m^2.
         E, nu, thickness, areal_density: initial design parameters
             (``params.actuators[i]``, :class:`MembraneParams`): Pa, -, m, kg/m^2. A
@@ -84,7 +86,7 @@ class Membrane(VertexTerm):
     """
 
     triangles: np.ndarray
-    dminv: np.ndarray
+    gradients: np.ndarray
     area: np.ndarray
     E: float
     nu: float
@@ -135,8 +137,8 @@ class Membrane(VertexTerm):
         if len(bad):
             raise SceneError(f"Membrane: {len(bad)} degenerate (zero-area) triangles, e.g. {tri[bad[0]].tolist()}; "
                              "remove them from the selection")
-        dminv, area = _rest_frames(points, tri)
-        return cls(tri.astype(np.int32), dminv, area, float(E), float(nu), float(thickness), float(areal_density))
+        gradients, area = _rest_frames(points, tri)
+        return cls(tri.astype(np.int32), gradients, area, float(E), float(nu), float(thickness), float(areal_density))
 
     def init_params(self) -> MembraneParams:
         return MembraneParams(E=jnp.asarray(self.E), nu=jnp.asarray(self.nu), thickness=jnp.asarray(self.thickness),
@@ -159,19 +161,14 @@ class Membrane(VertexTerm):
     def stencil(self) -> np.ndarray:
         return self.triangles
 
-    def _shape_gradients(self) -> Array:
-        """``(m, 3, 2)``: ``F = sum_a x_a g_a^T`` for each triangle's vertices ``a``."""
-        dminv = jnp.asarray(self.dminv)
-        return jnp.concatenate([-jnp.sum(dminv, axis=1, keepdims=True), dminv], axis=1)
-
     def blocks(self, prep) -> Array:
         mu_at, lam_at, _ = prep
-        g = self._shape_gradients()
+        g = jnp.asarray(self.gradients)
         return (2.0 * mu_at + 2.0 * lam_at)[:, None, None] * jnp.einsum("mai,mbi->mab", g, g)
 
     def energy_and_gradient(self, x, prep, activation):
         mu_at, lam_at, _ = prep
-        g = self._shape_gradients()
+        g = jnp.asarray(self.gradients)
         tri = jnp.asarray(self.triangles)
 
         def energy(x):

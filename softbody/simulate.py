@@ -330,7 +330,7 @@ def step(model: Model, prep: Prepared, state: State, activation=None, force=None
         raise SceneError(f"step takes one implicit-Euler step, but this scene's integrator is "
                          f"{type(integrator).__name__}() (Options.integrator), whose steps need the earlier states: "
                          "use rollout(..., n_steps=k), or build the scene with Options(integrator=None)")
-    new, _, info = ImplicitEuler().step(model, prep, state, (), _activation(model, activation), force)
+    new, _, info = integrator.step(model, prep, state, (), _activation(model, activation), force)
     return new, info
 
 
