@@ -21,6 +21,11 @@ which methods it happens to have:
 An actuator is a term with named control channels, each with the range of values it
 accepts (:meth:`Term.channel_bounds`); every term has design parameters (``init_params``,
 differentiable, in ``params.actuators``) and per-rollout data (``prepare``).
+
+**Contact rows.** Contact is made of rows (:class:`Rows` generators, each giving a
+:class:`Frame` per vertex: gap, normal, surface velocity, friction, restitution). The
+scene's obstacles are one generator; a test or a user adds others with
+``build(rows=[...])``; the contact solver meets them all alike.
 """
 
 from __future__ import annotations
@@ -217,13 +222,73 @@ class VolumeTerm(Term):
         raise NotImplementedError
 
 
+class Frame(NamedTuple):
+    """The contact rows on some points: one row per point, in its contact frame.
+
+    Attributes:
+        phi: ``(m,)`` signed gap, m (< 0: the point lies inside; a point with no row has a
+            gap beyond reach, e.g. ``jnp.inf``).
+        normal: ``(m, 3)`` unit normals, pointing out of what the point touches.
+        velocity: ``(m, 3)`` the velocity of the touched surface's material there, m/s
+            (friction acts on the point's motion relative to it).
+        mu_s, mu_k: ``(m,)`` static and kinetic friction coefficients (``mu_k <= mu_s``).
+        restitution: ``(m,)`` coefficients of restitution in [0, 1].
+    """
+
+    phi: object
+    normal: object
+    velocity: object
+    mu_s: object
+    mu_k: object
+    restitution: object
+
+
+class Rows:
+    """A generator of contact rows: the constraints that keep points out of something.
+
+    A row couples a vertex to what it must not enter (an obstacle, a moving plane that
+    holds a few vertices, ...), with the gap, normal, surface velocity, friction and
+    restitution of :class:`Frame`. The contact solver (:class:`softbody.contact.Contact`)
+    asks every generator of a scene for its rows at trial positions and, on a vertex that
+    several generators reach, keeps the deepest row; it knows nothing else about them.
+    The scene's obstacles are one generator (:class:`softbody.obstacles.ObstacleRows`);
+    :func:`softbody.model.build` takes others as ``rows=[...]``. A row couples one vertex
+    here; rows on vertex pairs and triangles (bodies touching bodies) will carry their
+    vertices and barycentric weights.
+
+    A generator is static (hashable: compare by identity or content); its design
+    parameters (``init_params``, in ``params.rows``) are differentiable, and the step's
+    implicit derivative reaches them through the frame.
+    """
+
+    def init_params(self):
+        """The generator's design parameters (a pytree; ``()``: none)."""
+        return ()
+
+    def check(self, params) -> None:
+        """Refuse malformed parameters before anything compiles (raises ``ValueError``)."""
+
+    def frame(self, points, index, params, time) -> Frame:
+        """The rows on some points.
+
+        Arguments:
+            points: ``(m, 3)`` trial positions of the scene's vertices ``index``.
+            index: ``(m,)`` int vertex indices of ``points`` (traced: compare, gather).
+            params: the generator's parameters; time: the step's end time, s.
+
+        Returns:
+            A :class:`Frame` of ``m`` rows (``phi = inf`` where the generator has none).
+        """
+        raise NotImplementedError
+
+
 class Coordinates:
     """The unknowns of an implicit step: how positions are parametrised.
 
     :class:`softbody.solvers.Vertices` moves every free vertex; a skeleton's
     :class:`softbody.skeleton.Reduced` places its bones by forward kinematics of joint
     coordinates. A step (:class:`softbody.solvers.Step`) combines coordinates with a
-    nonlinear solver and, with obstacles, a contact constraint; each method below is
+    nonlinear solver and, with contact rows, a contact constraint; each method below is
     what one of those parts needs from the coordinates.
     """
 

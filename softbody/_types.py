@@ -46,7 +46,7 @@ class SceneError(ValueError):
 #: The scene features that strategies may or may not support (:attr:`Model.features`;
 #: :class:`softbody._interfaces.Capabilities`), each with how a scene comes to have it.
 FEATURES = {
-    "obstacles": "build(obstacles=...)",
+    "contact": "build(obstacles=...) or build(rows=...)",
     "skeleton": "build(skeleton=...)",
     "rigid bodies": "RigidBody",
     "motion": "SoftBody(motion=...)",
@@ -125,6 +125,8 @@ class Params(eqx.Module):
             ``Model.bodies``; its inertia scales with it (the shape is fixed).
         actuators: a tuple with one design-parameter pytree per actuator term.
         obstacles: a tuple with one parameter pytree per obstacle (pose, friction, ...).
+        rows: a tuple with one parameter pytree per contact row generator of
+            ``build(rows=...)``.
     """
 
     E: Array
@@ -136,6 +138,7 @@ class Params(eqx.Module):
     rigid_mass: Array
     actuators: tuple = ()
     obstacles: tuple = ()
+    rows: tuple = ()
 
     def __check_init__(self):
         shape = jnp.shape(self.E)
@@ -225,6 +228,7 @@ class Model:
     terms: tuple = ()  # actuator terms (see softbody.simulate for the term kinds)
     channel_names: tuple[str, ...] = ()
     obstacles: tuple = ()  # obstacle objects (see softbody.obstacles)
+    rows: tuple = ()  # contact row generators besides the obstacles (softbody._interfaces.Rows)
     stiffness_damping: bool = False  # some material had beta > 0 at build time
     rig: object = None  # the skeleton bound to the mesh (softbody.skeleton.Rig), or None
     step: object = None  # the composed step (softbody.solvers.Step) that build resolved
@@ -239,12 +243,17 @@ class Model:
         """The scene's features among :data:`FEATURES`: what a strategy must support to
         step it (:class:`softbody._interfaces.Capabilities`)."""
         rigid = sum(part.rigid is not None for part in self.bodies)
-        held = {"obstacles": bool(self.obstacles),
+        held = {"contact": self.has_contact,
                 "skeleton": self.rig is not None and len(self.rig.skeleton.links) > rigid,
                 "rigid bodies": rigid > 0,
                 "motion": self.moving,
                 "partly held vertices": self.free_mask.shape[1] > 1}
         return frozenset(name for name, present in held.items() if present)
+
+    @property
+    def has_contact(self) -> bool:
+        """Whether the scene has contact rows: obstacles or other row generators."""
+        return bool(self.obstacles or self.rows)
 
     @property
     def n_tets(self) -> int:
@@ -334,6 +343,7 @@ class Prepared(eqx.Module):
     factor: object  # linear-solver factor
     inertia: Array  # scalar: 1/h^2 for dynamics, 0 for statics
     step: object = None  # the step's per-rollout data (Step.prepare)
+    rows: tuple = ()  # per-generator parameters (Params.rows)
 
 
 class RESULTS(enum.IntEnum):

@@ -1,7 +1,12 @@
 """The contact solver: implicit-Euler steps with contact and dry friction.
 
-The scene's obstacles (signed distance functions with friction and restitution) are
-:mod:`softbody.obstacles`.
+**Rows.** Contact is a set of rows (:class:`softbody._interfaces.Rows`): each keeps a
+vertex out of something, with its gap, normal, the velocity of the surface it meets,
+friction coefficients and restitution (:class:`softbody._interfaces.Frame`). The scene's
+obstacles (signed distance functions, :mod:`softbody.obstacles`) are one generator of rows
+(:class:`softbody.obstacles.ObstacleRows`); ``build(rows=...)`` adds others (a plane that
+holds a few vertices, ...). Where several rows reach a vertex the solver keeps the deepest;
+it sees nothing of the generators but their rows.
 
 **The contact solver** :class:`Contact` solves each implicit-Euler step
 ``min Phi(x)`` subject to non-penetration and Coulomb friction with the design's
@@ -96,8 +101,8 @@ import numpy as np
 from softbody import anderson
 from softbody.active_set import ActiveSet
 from softbody.fixed_point import closure_convert, fixed_point
-from softbody.obstacles import check_obstacles, norm, unit
-from softbody._interfaces import ContactSweep, Coordinates
+from softbody.obstacles import ObstacleRows, norm, unit
+from softbody._interfaces import ContactSweep, Coordinates, Frame
 from softbody.solvers import NonlinearSolver, Solution, StepProblem
 from softbody.splitting import Naive, ScaledDiagonal, Splitting
 
@@ -115,28 +120,38 @@ CONTACT_STATES = ("none", "stick", "slide")
 # contacts (drift 1e-8 m in 0.4 s, 2.5e-8 m/s) stay far below it.
 SLIDING_SPEED = 1e-4
 
+# m: the gap of a point on which a row generator puts no row (its frame's phi is inf there):
+# finite, so that products with it in the contact step stay finite.
+_FAR = 1e30
+
 
 # --------------------------------------------------------------------------------------
 # The per-vertex contact step
 # --------------------------------------------------------------------------------------
 
 
-def _nearest_obstacle(obstacles, points, time):
-    """Per point, the geometry and coefficients of the obstacle it is deepest in (or nearest to).
+def _frames(rows, points, index, time) -> Frame:
+    """Per point, the deepest of the rows that the scene's generators put on it.
 
-    Returns ``(phi (n,), normal (n, 3), velocity (n, 3), mu_s (n,), mu_k (n,), e (n,))``.
+    Arguments:
+        rows: ``((generator, params), ...)`` of the step (:attr:`StepProblem.rows`), at
+            least one.
+        points: ``(m, 3)`` trial positions of the vertices ``index`` ``(m,)``; time: s.
+
+    Returns:
+        A :class:`~softbody._interfaces.Frame` of ``m`` rows; a point no generator reaches
+        has a gap of ``_FAR``.
     """
-    rows = []
-    for ob, p in obstacles:
-        phi, normal, vel = ob.distance(points, p, time)
-        ones = jnp.ones_like(phi)
-        rows.append((phi, normal, vel, p.mu_s * ones, p.mu_k * ones, p.restitution * ones))
-    if len(rows) == 1:
-        return rows[0]
-    pick = jax.nn.one_hot(
-        jnp.argmin(jnp.stack([r[0] for r in rows]), axis=0), len(rows), axis=0
-    )  # (k, n)
-    return tuple(jnp.einsum("kn,kn...->n...", pick, jnp.stack(column)) for column in zip(*rows))
+    frames = [generator.frame(points, index, params, time) for generator, params in rows]
+    if len(frames) == 1 and isinstance(rows[0][0], ObstacleRows):
+        return frames[0]
+    frames = [f._replace(phi=jnp.minimum(f.phi, _FAR)) for f in frames]  # no row: far away, finite
+    if len(frames) == 1:
+        return frames[0]
+    deepest = jnp.argmin(jnp.stack([f.phi for f in frames]), axis=0)  # (m,)
+    return Frame(*(functools.reduce(
+        lambda acc, k: jnp.where((deepest == k).reshape(deepest.shape + (1,) * (acc.ndim - 1)), column[k], acc),
+        range(1, len(frames)), column[0]) for column in zip(*frames)))
 
 
 def _contact_step(y, x_n, v_n, h, frame, free):
@@ -188,7 +203,7 @@ class Contact:
     :mod:`softbody.active_set`).
 
     The contact constraint's part of a composed step (:class:`~softbody.solvers.Step`),
-    chosen by :func:`~softbody.model.build` for a scene with obstacles (set
+    chosen by :func:`~softbody.model.build` for a scene with contact rows, obstacles or others (set
     ``Options(contact=Contact(...))`` to change its settings). See the module docstring for
     the scheme; in short, each iteration is PD's local step, one sweep of
     ``(M/h^2 + D) x^{k+1} = b - (L - D) x^k`` and the per-vertex contact step, accelerated
@@ -223,7 +238,7 @@ class Contact:
     Raises:
         ValueError: a bad attribute (negative history, ``restart <= 1``, ...).
         ObstacleError: (in ``run``) an object in the scene's obstacles that is not an
-            obstacle, or parameters that do not match it.
+            obstacle, or parameters that do not match it (a row generator's ``check``).
     """
 
     splitting: Splitting = field(default_factory=ScaledDiagonal)
@@ -287,10 +302,12 @@ class Contact:
             local-step counts, and the force residual ``|grad Phi - r|``.
 
         Raises:
-            ObstacleError: the scene's obstacles or their parameters are malformed.
+            ObstacleError, ValueError: the scene's obstacles or their parameters are
+                malformed (each row generator's ``check``).
             ValueError: the Naive splitting in a static solve (nothing to invert).
         """
-        check_obstacles(problem.obstacles)
+        for generator, params in problem.rows:
+            generator.check(params)
         if problem.dt == 0 and isinstance(self.splitting, Naive):
             raise ValueError(
                 "the Naive splitting has nothing to invert in a static solve (no mass): "
@@ -299,9 +316,10 @@ class Contact:
         iteration = self.map(problem, coordinates)
         n = x0.shape[0]
         free = problem.free[:, 0] > 0
+        vertices = jnp.arange(n)
 
         def distance(x, t):
-            return jnp.where(free, _nearest_obstacle(problem.obstacles, x, t)[0], jnp.inf)
+            return jnp.where(free, _frames(problem.rows, x, vertices, t).phi, jnp.inf)
 
         start = jax.lax.stop_gradient(
             jnp.minimum(distance(problem.x_n, problem.time), distance(x0, problem.time + problem.dt)))
@@ -352,12 +370,13 @@ class Contact:
         p = self._sweep_diagonal(problem)
         parts = coordinates.contact_sweep(problem, p, self._law(problem))
         touching, n, t_end = parts.touching, problem.x_n.shape[0], problem.time + h
+        vertices = jnp.arange(n)
 
         def apply(x, q):
             placed, aux = parts.place(x)
             _, g, q = problem.evaluate(placed, q)
             y = placed - g / p  # one splitting sweep
-            frame = _nearest_obstacle(problem.obstacles, y, t_end)
+            frame = _frames(problem.rows, y, vertices, t_end)
             x_new = jnp.where(
                 touching > 0, _contact_step(y, problem.x_n, problem.v_n, h, frame, touching), placed
             )
@@ -401,7 +420,7 @@ class Contact:
         x, _ = parts.place(x)
         _, g, _ = problem.evaluate(x, q)
         y = x - g / p
-        frame = _nearest_obstacle(problem.obstacles, y, problem.time + problem.dt)
+        frame = _frames(problem.rows, y, jnp.arange(x.shape[0]), problem.time + problem.dt)
         contact, _, _ = _contact_state(y, problem.x_n, problem.v_n, problem.dt, frame, parts.touching)
         force = jnp.where(contact[:, None], g, 0.0)
         normal, vel, mu_s, mu_k = frame[1], frame[2], frame[3], frame[4]
@@ -416,7 +435,7 @@ class Contact:
             solved = self._iterate(iteration, iteration.lift(x), q, threshold, max_iter)
             owners = jnp.asarray(parts.owners)
             skin = parts.forces(solved.x)
-            frame_skin = _nearest_obstacle(problem.obstacles, x[owners], problem.time + problem.dt)
+            frame_skin = _frames(problem.rows, x[owners], owners, problem.time + problem.dt)
             pushed = jnp.sum(skin * frame_skin[1], axis=-1) > 0
             contact = contact.at[owners].set(pushed)
             force = force.at[owners].set(jnp.where(pushed[:, None], skin, 0.0))
@@ -435,11 +454,11 @@ class Contact:
         t_end = problem.time + h
 
         def law(y, index, valid, kinetic=False):
-            frame = _nearest_obstacle(problem.obstacles, y, t_end)
+            frame = _frames(problem.rows, y, index, t_end)
             if kinetic:  # vertices sliding at the step's start meet the kinetic cone only
                 phi, normal, vel, mu_s, mu_k, e = frame
                 moving = norm(_tangential(problem.v_n[index] - vel, normal)) > SLIDING_SPEED
-                frame = (phi, normal, vel, jnp.where(moving, mu_k, mu_s), mu_k, e)
+                frame = Frame(phi, normal, vel, jnp.where(moving, mu_k, mu_s), mu_k, e)
             touching, stick, correction = _contact_state(
                 y, problem.x_n[index], problem.v_n[index], h, frame, valid[:, None].astype(y.dtype))
             return touching, stick, correction, frame[1]
@@ -486,8 +505,8 @@ class Contact:
                                   evaluations=check.evaluations + quick.evaluations,
                                   fallback=~done | (check.iterations > 1)), cache
 
-        def free_step():  # the solver sees no obstacles: it is contact-free by definition
-            sol = coordinates.minimize(solver, problem._replace(obstacles=()), x0, q0, threshold, max_iter)
+        def free_step():  # the solver sees no rows: it is contact-free by definition
+            sol = coordinates.minimize(solver, problem._replace(rows=()), x0, q0, threshold, max_iter)
             return sol._replace(x=iteration.lift(sol.x), fallback=no), cache0
 
         def skipped():

@@ -97,7 +97,7 @@ class Unrolled(Adjoint):
     remat: bool = True
 
     capabilities: ClassVar[Capabilities] = Capabilities(
-        refuses={"obstacles": "differentiates the iterations as they ran, but a step with contact is "
+        refuses={"contact": "differentiates the iterations as they ran, but a step with contact is "
                               "differentiated through the fixed point of its contact iteration (softbody.fixed_point)"},
         instead="use the default adjoint, Implicit() (or ImplicitForward())")
 
@@ -138,7 +138,7 @@ class Implicit(Adjoint):
 
     def solve(self, model, prep, state, activation, force, *, static):
 
-        if model.obstacles:
+        if model.has_contact:
             # Contact adds impulses beyond the stationarity of Phi: the contact solver
             # carries its own implicit derivative (active set held fixed).
             return solve_step(model, prep, state, activation, force, static=static)
@@ -194,7 +194,7 @@ class ImplicitForward(Implicit):
 
     def solve(self, model, prep, state, activation, force, *, static):
 
-        if model.obstacles:
+        if model.has_contact:
             # The contact solver's own implicit derivative is a custom JVP already.
             return solve_step(model, prep, state, activation, force, static=static)
 

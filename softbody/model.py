@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from softbody import linsolve, rotation
-from softbody._interfaces import ElementTerm, Integrator, Term, VertexTerm
+from softbody._interfaces import ElementTerm, Integrator, Rows, Term, VertexTerm
 from softbody.rigid import RigidBody
 from softbody.scene import SoftBody, assemble
 from softbody._types import Model, Options, Params, Prepared, SceneError, State
@@ -86,13 +86,13 @@ def _rig(mesh, skeleton, free: np.ndarray, scene) -> Rig | None:
     return rig
 
 
-def _check_partial(skeleton, obstacles) -> None:
+def _check_partial(skeleton, contact: bool) -> None:
     """Refuse partly held vertices where the step cannot hold them yet."""
     if skeleton is not None:
         raise SceneError("a scene with a skeleton holds vertices in all three components only: fix them with "
                          "fixed=<selection> (or a Fix with axes='xyz'), or weld a bone with a root Fixed() joint")
-    if obstacles:
-        raise SceneError("contact holds vertices in all three components only: a scene with obstacles cannot "
+    if contact:
+        raise SceneError("contact holds vertices in all three components only: a scene with contact rows cannot "
                          "use Fix(..., axes=...) with fewer than three axes yet; model the support as an "
                          "obstacle (softbody.obstacles.Plane) or clamp the vertices fully")
 
@@ -124,7 +124,7 @@ def _stencils(terms, n: int) -> list:
     return out
 
 
-def _compose(options: Options, rig: Rig | None, obstacles: tuple, parts: tuple) -> Step:
+def _compose(options: Options, rig: Rig | None, contact_rows: bool, parts: tuple) -> Step:
     """The step of a scene: its coordinates, its contact constraint and the solver, checked
     together (every refusal here happens before anything compiles)."""
     coordinates = Vertices() if rig is None else Reduced(rig)
@@ -138,16 +138,16 @@ def _compose(options: Options, rig: Rig | None, obstacles: tuple, parts: tuple) 
                          f"{type(solver).__name__}; pass one of them as Options(solver=...)")
     if options.contact is not None and not isinstance(options.contact, Contact):
         raise SceneError(f"Options.contact must be a softbody.contact.Contact, got {options.contact!r}")
-    if options.contact is not None and not obstacles:
-        raise SceneError("Options.contact sets the contact solver, but the scene has no obstacles: add "
-                         "obstacles=[...] to build, or leave Options.contact at None")
+    if options.contact is not None and not contact_rows:
+        raise SceneError("Options.contact sets the contact solver, but the scene has no obstacles or contact rows: "
+                         "add obstacles=[...] (or rows=[...]) to build, or leave Options.contact at None")
     if options.integrator is not None and not isinstance(options.integrator, Integrator):
         raise SceneError(f"Options.integrator must be None (implicit Euler) or an integrator such as "
                          f"softbody.simulate.BDF2(), got {options.integrator!r}")
     if not isinstance(options.adjoint, Adjoint):
         raise SceneError(f"Options.adjoint must be Implicit(), ImplicitForward() or Unrolled(), got "
                          f"{options.adjoint!r}")
-    contact = (options.contact or Contact()) if obstacles else None
+    contact = (options.contact or Contact()) if contact_rows else None
     if contact is not None and len(parts) > 1 and not contact.blocks:
         contact = dataclasses.replace(contact, blocks=tuple(part.vertices for part in parts))
     n = parts[-1].vertices[1]
@@ -168,6 +168,7 @@ def build(
     actuators: Sequence = (),
     terms: Sequence = (),
     obstacles: Sequence = (),
+    rows: Sequence = (),
     options: Options = Options(),
 ) -> tuple[Model, Params]:
     """Compile a scene: its bodies and what acts between them.
@@ -176,7 +177,7 @@ def build(
         bodies: one :class:`~softbody.scene.SoftBody` (a tet mesh with its materials, held
             vertices, their motion and its actuators) or a list of them, each named (see
             :mod:`softbody.scene`). They are concatenated into one vertex array, in order.
-            Partly held vertices are refused with a skeleton or obstacles; implicit steps
+            Partly held vertices are refused with a skeleton or contact; implicit steps
             (:func:`~softbody.simulate.step`, rollouts, policies) follow a body's
             ``motion``, the explicit and Newton reference integrators refuse it. A
             :class:`~softbody.rigid.RigidBody` (always named) joins as a 6-dof root link of
@@ -192,6 +193,9 @@ def build(
             a membrane on a surface, ...). A :class:`~softbody._interfaces.VertexTerm`'s
             ``stencil()`` blocks join the PD matrix. Their channels follow the actuators'.
         obstacles: obstacles for contact and friction (see :mod:`softbody.obstacles`).
+        rows: other contact row generators (:class:`~softbody._interfaces.Rows`: constraints
+            that keep vertices out of something, with friction); the contact solver meets
+            them as it meets the obstacles' rows. Their parameters are ``params.rows``.
         options: :class:`Options`.
 
     Returns:
@@ -220,6 +224,11 @@ def build(
         if not isinstance(term, Term):
             raise SceneError(f"terms[{i}] is a {type(term).__name__}, not an energy term; subclass "
                              "softbody._interfaces.VertexTerm (or ElementTerm, VolumeTerm)")
+    generators = tuple(rows)  # (the name rows is the pattern's below)
+    for i, generator in enumerate(generators):
+        if not isinstance(generator, Rows):
+            raise SceneError(f"rows[{i}] is a {type(generator).__name__}, not a contact row generator; subclass "
+                             "softbody._interfaces.Rows (obstacles go in obstacles=[...])")
     stencils = _stencils((*scene.terms, *actuators, *terms), n)
     tets = mesh.tets.astype(np.int64)
     blocks = [tets] + [s for s in stencils if s is not None]  # each (m, k): its k x k entries
@@ -240,7 +249,7 @@ def build(
         block_to_data.append(None if s is None else entry_to_data[offset: offset + s.size * s.shape[1]])
         offset += 0 if s is None else s.size * s.shape[1]
     if partial:
-        _check_partial(skeleton, obstacles)
+        _check_partial(skeleton, bool(obstacles or generators))
 
     rig = _rig(mesh, skeleton, free, scene)
     rigid = tuple(part for part in scene.parts if part.rigid is not None)
@@ -262,7 +271,7 @@ def build(
     if partial and not isinstance(linear_solver, linsolve.PerColumn):
         linear_solver = linsolve.PerColumn(linear_solver)
     options = dataclasses.replace(options, linear_solver=linear_solver, adjoint=adjoint)
-    step = _compose(options, rig, tuple(obstacles), scene.parts)
+    step = _compose(options, rig, bool(obstacles or generators), scene.parts)
     options = dataclasses.replace(options, solver=step.solver, contact=step.contact)
     model = Model(
         mesh=mesh, options=options, material_names=scene.material_names, tet_material=scene.tet_material,
@@ -270,7 +279,7 @@ def build(
         pattern=pattern, local_to_data=local_to_data, diag_to_data=diag_to_data,
         block_to_data=tuple(block_to_data),
         terms=tuple(terms), channel_names=tuple(channels), obstacles=tuple(obstacles),
-        stiffness_damping=any(m.beta > 0 for m in mats), rig=rig, step=step, bodies=scene.parts,
+        rows=generators, stiffness_damping=any(m.beta > 0 for m in mats), rig=rig, step=step, bodies=scene.parts,
     )
     # The capability table: each strategy in the options refuses the scene features it cannot handle.
     for field, strategy in (("integrator", options.integrator), ("adjoint", options.adjoint)):
@@ -286,6 +295,7 @@ def build(
         rigid_mass=jnp.asarray([p.rigid.mass for p in rigid], jnp.float64),
         actuators=tuple(term.init_params() for term in terms),
         obstacles=tuple(ob.init_params() for ob in obstacles),
+        rows=tuple(generator.init_params() for generator in generators),
     )
     return model, params
 
@@ -392,5 +402,5 @@ def prepare(model: Model, params: Params, *, static: bool = False) -> Prepared:
         model.pattern, data if model.axis_keep is None else data * jnp.asarray(model.axis_keep))
     return Prepared(dminv=dminv, volume=volume, mass=mass[:, None], mass_alpha=mass_alpha[:, None],
                     w_s=w_s, w_v=w_v, w_b=w_b, x_rest=x_rest, terms=term_prep,
-                    obstacles=tuple(params.obstacles), data=data,
+                    obstacles=tuple(params.obstacles), rows=tuple(params.rows), data=data,
                     factor=factor, inertia=inertia, step=model.step.prepare(model, data, factor))

@@ -16,6 +16,7 @@ from softbody._interfaces import ElementTerm, VertexTerm, VolumeTerm
 from softbody.elastic import (corotated, deformation_gradient, scatter_stress, shape_gradients, strain_rate_damping,
                               stress_derivative_product)
 from softbody._types import RESULTS, Model, Prepared, State, StepInfo
+from softbody.obstacles import ObstacleRows
 from softbody.solvers import Solution, StepProblem
 
 Array = jax.Array
@@ -239,6 +240,14 @@ def step_gradient_vjp(model: Model, prep: Prepared, x_n, v_n, q_n, activation, f
     return vjp(jnp.ones_like(value))
 
 
+def contact_rows(model: Model, prep: Prepared) -> tuple:
+    """The scene's contact row generators with their parameters, ``((generator, params), ...)``:
+    its obstacles' (:class:`~softbody.obstacles.ObstacleRows`, on ``params.obstacles``) first,
+    if any, then ``build(rows=...)``'s (on ``params.rows``); ``()`` without contact."""
+    obstacles = ((ObstacleRows(model.obstacles), prep.obstacles),) if model.obstacles else ()
+    return obstacles + tuple(zip(model.rows, prep.rows))
+
+
 def step_problem(model: Model, prep: Prepared, state: State, activation, force, *, static: bool):
     """The :class:`~softbody.solvers.StepProblem` of one step (or static solve) from ``state``.
 
@@ -256,7 +265,7 @@ def step_problem(model: Model, prep: Prepared, state: State, activation, force, 
         precondition=lambda g: solver.solve(pattern, prep.factor, g),
         diagonal=prep.data[jnp.asarray(model.diag_to_data)][:, None],
         x_n=state.x, v_n=state.v, mass=prep.mass, free=free, dt=0.0 if static else opts.dt,
-        time=state.t, obstacles=tuple(zip(model.obstacles, prep.obstacles)), prepared=prep.step)
+        time=state.t, rows=contact_rows(model, prep), prepared=prep.step)
     x0 = state.x if static else jnp.where(free > 0, state.x + opts.dt * state.v, state.x)
     if static:
         # Actuators may load a body with no external force: measure the residual against

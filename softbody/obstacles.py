@@ -42,6 +42,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from softbody._interfaces import Frame, Rows
+
 __all__ = [
     "Box",
     "BoxParams",
@@ -57,7 +59,9 @@ __all__ = [
     "PlaneParams",
     "Sphere",
     "SphereParams",
+    "ObstacleRows",
     "from_dict",
+    "nearest_obstacle",
 ]
 
 #: the parameters every obstacle has, besides its shape's
@@ -719,3 +723,49 @@ def check_obstacles(obstacles) -> None:
                 f"{type(params).__name__}; change them with .replace(...) or eqx.tree_at"
             )
 
+
+
+def nearest_obstacle(obstacles, points, time) -> Frame:
+    """Per point, the frame of the obstacle it is deepest in (or nearest to).
+
+    Arguments:
+        obstacles: ``((obstacle, obstacle_params), ...)``, at least one.
+        points: ``(m, 3)``; time: s.
+
+    Returns:
+        A :class:`~softbody._interfaces.Frame` of ``m`` rows.
+    """
+    rows = []
+    for ob, p in obstacles:
+        phi, normal, vel = ob.distance(points, p, time)
+        ones = jnp.ones_like(phi)
+        rows.append((phi, normal, vel, p.mu_s * ones, p.mu_k * ones, p.restitution * ones))
+    if len(rows) == 1:
+        return Frame(*rows[0])
+    pick = jax.nn.one_hot(
+        jnp.argmin(jnp.stack([r[0] for r in rows]), axis=0), len(rows), axis=0
+    )  # (k, n)
+    return Frame(*(jnp.einsum("kn,kn...->n...", pick, jnp.stack(column)) for column in zip(*rows)))
+
+
+@dataclass(frozen=True)
+class ObstacleRows(Rows):
+    """The contact rows of a scene's obstacles: one row on every vertex, against the
+    obstacle it is deepest in (or nearest to). Its parameters are ``params.obstacles``.
+
+    Attributes:
+        obstacles: the scene's obstacles (a tuple, at least one).
+    """
+
+    obstacles: tuple
+
+    def init_params(self):
+        return tuple(ob.init_params() for ob in self.obstacles)
+
+    def check(self, params) -> None:
+        """Raises :class:`ObstacleError` where an object is no obstacle or its parameters
+        are not its :class:`ObstacleParams`."""
+        check_obstacles(tuple(zip(self.obstacles, params)))
+
+    def frame(self, points, index, params, time) -> Frame:
+        return nearest_obstacle(tuple(zip(self.obstacles, params)), points, time)

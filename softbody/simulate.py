@@ -366,10 +366,10 @@ def contact_forces(model: Model, params: Params, traj: Trajectory, controls=None
         :data:`softbody.contact.CONTACT_STATES` (0: none, 1: stick, 2: slide).
 
     Raises:
-        SceneError: the scene has no obstacles, or shapes that do not fit.
+        SceneError: the scene has no contact, or shapes that do not fit.
     """
     if model.step.contact is None:
-        raise SceneError("contact_forces needs a scene with obstacles; this one has none")
+        raise SceneError("contact_forces needs a scene with obstacles or other contact rows; this one has none")
     n_steps = traj.x.shape[0] - 1
     controls, forces, n_steps = _check_controls(model, controls, forces, n_steps)
     return _contact_forces(model, params, traj.x, traj.v, controls, forces, jnp.asarray(t0, jnp.float64))

@@ -20,7 +20,8 @@ Each solver is a small frozen dataclass (static: changing it recompiles) with
 **The composed step.** :func:`softbody.model.build` composes each scene's :class:`Step`
 from three parts: the coordinates (:class:`Vertices` here, or a skeleton's
 :class:`softbody.skeleton.Reduced`), the contact constraint
-(:class:`softbody.contact.Contact` where the scene has obstacles) and the solver chosen in
+(:class:`softbody.contact.Contact` where the scene has contact rows: obstacles or other
+row generators) and the solver chosen in
 ``Options(solver=...)``. The coordinates run the solver (vertex coordinates run it as it
 is; reduced coordinates run its L-BFGS in the skeleton's coordinates); the contact
 constraint runs its splitting iteration in the coordinates and hands the steps that touch
@@ -54,7 +55,9 @@ class StepProblem(NamedTuple):
             partly held vertices).
         dt: the time step (0 for static solves).
         time: the time at the start of the step, s.
-        obstacles: ``((obstacle, obstacle_params), ...)`` of the scene.
+        rows: ``((generator, params), ...)``: the scene's contact row generators
+            (:class:`~softbody._interfaces.Rows`; its obstacles are one) and their
+            parameters; ``()`` without contact.
         prepared: the coordinates' per-rollout data (:meth:`Step.prepare`).
     """
 
@@ -67,7 +70,7 @@ class StepProblem(NamedTuple):
     free: Array
     dt: float
     time: Array
-    obstacles: tuple = ()
+    rows: tuple = ()
     prepared: object = None
 
 
@@ -334,7 +337,7 @@ class Step:
         coordinates: the unknowns (:class:`Vertices`, or a skeleton's
             :class:`softbody.skeleton.Reduced`).
         solver: the contact-free nonlinear iteration (:class:`LBFGS`, :class:`LocalGlobal`).
-        contact: ``None`` for a scene without obstacles, else the contact constraint's
+        contact: ``None`` for a scene without contact rows, else the contact constraint's
             solver (:class:`softbody.contact.Contact`), which runs the splitting iteration
             in ``coordinates`` and ``solver`` on the steps that touch nothing.
 

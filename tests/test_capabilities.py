@@ -34,7 +34,7 @@ EXPLICIT = Options(dt=1e-4, integrator=SymplecticEuler(jnp.asarray(1e-4)))
 
 def _scene(feature, options=Options()):
     """A small scene with exactly one feature of the table (``None``: none)."""
-    if feature == "obstacles":
+    if feature == "contact":
         return build(SoftBody(BAR, MATERIAL, fixed="fixed"), obstacles=[Plane(point=(0, 0, -0.01))], options=options)
     if feature == "skeleton":
         arm = Region(vertices=np.flatnonzero(BAR.points[:, 0] > 0.07).astype(np.int32))
@@ -58,7 +58,7 @@ def test_a_model_knows_its_features(feature):
     assert model.features == (frozenset() if feature is None else {feature})
 
 
-@pytest.mark.parametrize("feature", ["obstacles", "skeleton", "rigid bodies", "motion"])
+@pytest.mark.parametrize("feature", ["contact", "skeleton", "rigid bodies", "motion"])
 def test_an_explicit_integrator_in_the_options_refuses_what_it_would_drop(feature, no_compiling):
     """``Options(integrator=SymplecticEuler(...))`` used to pass ``build`` and step through
     contact and joints as if they were not there."""
@@ -74,7 +74,7 @@ def test_an_explicit_integrator_in_the_options_runs_what_it_supports():
     np.testing.assert_array_equal(np.asarray(traj.x), np.asarray(reference.x))
 
 
-@pytest.mark.parametrize("feature", ["obstacles", "skeleton", "rigid bodies", "motion"])
+@pytest.mark.parametrize("feature", ["contact", "skeleton", "rigid bodies", "motion"])
 def test_explicit_rollout_refuses_from_the_same_table(feature, monkeypatch):
     monkeypatch.setattr("softbody.explicit._explicit", lambda *a: pytest.fail("compiled before refusing"))
     model, params = _scene(feature)
@@ -82,7 +82,7 @@ def test_explicit_rollout_refuses_from_the_same_table(feature, monkeypatch):
         explicit_rollout(model, params, initial_state(model, params), n_steps=2)
 
 
-@pytest.mark.parametrize("feature", ["obstacles", "skeleton", "rigid bodies", "motion"])
+@pytest.mark.parametrize("feature", ["contact", "skeleton", "rigid bodies", "motion"])
 def test_the_newton_reference_refuses_what_it_would_drop(feature, no_compiling):
     """With obstacles, Newton's steps used to pass through them."""
     model, params = _scene(feature)
@@ -115,7 +115,7 @@ def test_step_refuses_an_integrator_it_would_ignore(monkeypatch):
 def test_unrolled_refuses_contact_from_the_table(no_compiling):
     with pytest.raises(SceneError, match=r"Options\(adjoint=Unrolled\(\)\) differentiates the iterations as they "
                                          r"ran.*Implicit\(\).*it supports: skeleton, rigid bodies, motion"):
-        _scene("obstacles", Options(adjoint=Unrolled()))
+        _scene("contact", Options(adjoint=Unrolled()))
 
 
 def test_a_capability_names_only_known_features():

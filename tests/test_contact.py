@@ -28,10 +28,12 @@ from softbody.obstacles import (
     HeightField,
     Moving,
     ObstacleError,
+    ObstacleRows,
     Plane,
     PlaneParams,
     Sphere,
     from_dict,
+    nearest_obstacle,
 )
 from softbody.simulate import contact_forces, rollout, step
 from softbody.solvers import LBFGS, LocalGlobal, StepProblem, Vertices
@@ -120,7 +122,7 @@ def test_per_vertex_contact_rule():
     )
     plane = Plane(mu_s=mu_s, mu_k=mu_k)
     params = plane.init_params()
-    frame = list(contact._nearest_obstacle(((plane, params),), y, 0.0))
+    frame = list(nearest_obstacle(((plane, params),), y, 0.0))
     frame[5] = jnp.array([0.0, 0.0, 0.0, 0.5, 0.0])  # per-vertex restitution
     free = jnp.array([[1.0], [1.0], [1.0], [1.0], [0.0]])  # the last vertex is fixed: untouched
     x = np.asarray(contact._contact_step(y, x_n, v_n, h, tuple(frame), free))
@@ -133,7 +135,7 @@ def test_per_vertex_contact_rule():
 
     # a moving obstacle: sticking means moving with its surface, x_n + h u
     belt = Moving(Plane(mu_s=mu_s), lambda t: (jnp.eye(3), jnp.array([0.2 * t, 0.0, 0.0])))
-    frame = contact._nearest_obstacle(((belt, belt.init_params()),), y[1:2], 0.0)
+    frame = nearest_obstacle(((belt, belt.init_params()),), y[1:2], 0.0)
     x = contact._contact_step(y[1:2], x_n[1:2], v_n[1:2], h, frame, free[:1])
     np.testing.assert_allclose(x, [[0.2 * h, 0.0, 0.0]], atol=1e-15)
 
@@ -265,19 +267,20 @@ def test_contact_rejects_bad_settings_and_mismatched_parameters():
         free=jnp.ones((4, 1)),
         dt=0.01,
         time=jnp.asarray(0.0),
-        obstacles=((Plane(), {"point": jnp.zeros(3)}),),
+        rows=((ObstacleRows((Plane(),)), ({"point": jnp.zeros(3)},)),),
     )
     with pytest.raises(ObstacleError, match="must be the PlaneParams made by init_params"):
         Contact().run(problem, Vertices(), LBFGS(), x, None, 1e-6, 10)
-    wrong = ((Plane(), Sphere().init_params()),)
+    wrong = ((ObstacleRows((Plane(),)), (Sphere().init_params(),)),)
     with pytest.raises(ObstacleError, match="got a SphereParams"):
-        Contact().run(problem._replace(obstacles=wrong), Vertices(), LBFGS(), x, None, 1e-6, 10)
+        Contact().run(problem._replace(rows=wrong), Vertices(), LBFGS(), x, None, 1e-6, 10)
     model, params = build(SoftBody(grid_box(cells=(1, 1, 1)), Material(), fixed="xmin"))
     traj = rollout(model, params, initial_state(model, params), n_steps=1)
     with pytest.raises(SceneError, match="contact_forces needs a scene with obstacles"):
         contact_forces(model, params, traj)
     with pytest.raises(ObstacleError, match="obstacle 0 is a str"):
-        Contact().run(problem._replace(obstacles=(("floor", {}),)), Vertices(), LBFGS(), x, None, 1e-6, 10)
+        Contact().run(problem._replace(rows=((ObstacleRows(("floor",)), ({},)),)), Vertices(), LBFGS(), x, None,
+                      1e-6, 10)
 
 
 # ----------------------------------------------------------------------------- friction physics

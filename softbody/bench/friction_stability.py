@@ -56,7 +56,7 @@ from softbody.meshing import TetMesh, examples
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, build, initial_state, prepare
 from softbody.scene import SoftBody
-from softbody.objective import solve_step, step_objective
+from softbody.objective import contact_rows, solve_step, step_objective
 from softbody.obstacles import Plane
 from softbody.solvers import LocalGlobal, StepProblem
 from softbody.splitting import Diagonal, Naive, ScaledDiagonal, _pd_split, _spectral_radius
@@ -117,7 +117,7 @@ def _iterations(model, n_plain: int):
             free=free,
             dt=model.options.dt,
             time=state.t,
-            obstacles=tuple(zip(model.obstacles, prep.obstacles)),
+            rows=contact_rows(model, prep),
         )
         plain = Contact(splitting=contact.splitting, history=0)
         iteration = plain.map(problem, model.step.coordinates)
