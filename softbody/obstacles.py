@@ -55,11 +55,11 @@ __all__ = [
     "Obstacle",
     "ObstacleError",
     "ObstacleParams",
+    "ObstacleRows",
     "Plane",
     "PlaneParams",
     "Sphere",
     "SphereParams",
-    "ObstacleRows",
     "from_dict",
     "nearest_obstacle",
 ]

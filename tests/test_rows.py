@@ -139,7 +139,7 @@ def test_gradients_through_rows(adjoint):
 
     args = (params, jnp.zeros_like(params.E), v0)
     zero = jax.tree.map(jnp.zeros_like, args)
-    rows = lambda **on: zero[0].replace(rows=({k: jnp.asarray(on.get(k, 0.0)) for k in ("height", "mu")},))  # noqa: E731
+    rows = lambda **on: zero[0].replace(rows=({k: jnp.asarray(on.get(k, 0.0)) for k in ("height", "mu")},))
     directions = {"height": (rows(height=1.0), zero[1], zero[2]), "mu": (rows(mu=1.0), zero[1], zero[2]),
                   "log_E": (zero[0], jnp.ones_like(args[1]), zero[2]), "v0": (zero[0], zero[1], jnp.ones_like(v0))}
     eps = 1e-4
