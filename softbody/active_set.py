@@ -207,30 +207,16 @@ class ActiveSet:
             ``(solution, cache)``: the :class:`~softbody.solvers.Solution` of the iterate
             with the smallest residual (its map output), and the last active set and factor.
         """
-        inf = jnp.asarray(jnp.inf, x0.dtype)
-
-        def body(c):
-            x, q, k, best_x, best_q, best_r, _, hist, cache, stall = c
+        def step(x, q, cache):
             x_new, q_new, r, new_cache = iteration(x, q, cache)
-            better = r < best_r
-            best_x = jnp.where(better, x_new, best_x)
-            best_q = jnp.where(better, q_new, best_q)
-            stall = jnp.where(better, 0, stall + 1)
             # Contacts made or broken start a new quasi-Newton model, and so does a run of
             # iterations without progress (a history of round-off); a vertex turning
             # between sticking and sliding (at the cone's edge, where both are nearly
             # right) does not.
-            restart = ((r > 10.0 * best_r) | jnp.any((new_cache[0] > 0) != (cache[0] > 0))
-                       | (stall % self.patience == self.patience - 1))
-            best_r = jnp.where(better, r, best_r)
-            x_next, hist = anderson.mix(x, x_new, weight, hist, restart, self.history)
-            return x_next, q_new, k + 1, best_x, best_q, best_r, r, hist, new_cache, stall
+            return x_new, q_new, r, new_cache, jnp.any((new_cache[0] > 0) != (cache[0] > 0))
 
-        cap = jnp.minimum(max_iter, self.max_iter)
-        init = (x0, q0, jnp.asarray(0), x0, q0, inf, inf, anderson.init(self.history, x0.size, x0.dtype), cache,
-                jnp.asarray(0))
         # It stops at the tolerance, at its cap, or after 4 patience spans without progress.
-        out = jax.lax.while_loop(
-            lambda c: (c[6] > threshold) & (c[2] < cap) & (c[9] < 4 * self.patience), body, init)
-        _, _, k, best_x, best_q, best_r, _, _, cache, _ = out
+        best_x, best_q, k, best_r, cache = anderson.iterate(
+            step, x0, q0, cache, weight=weight, threshold=threshold, cap=jnp.minimum(max_iter, self.max_iter),
+            history=self.history, restart=10.0, patience=self.patience)
         return Solution(best_x, best_q, k, k, best_r), cache

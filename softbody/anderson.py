@@ -11,9 +11,10 @@ tuple of fixed-shape arrays (:func:`init`), so the iteration runs inside
 ``jax.lax.while_loop``. :func:`linear_solve` applies the same mixing to ``u = J u + b``
 to solve ``(I - J) u = b`` when ``rho(J) < 1``.
 
-The acceleration is a heuristic with no convergence guarantee of its own: callers keep
-the best iterate and restart when the residual grows (see
-:class:`softbody.contact.Contact`).
+The acceleration is a heuristic with no convergence guarantee of its own: :func:`iterate`,
+the one loop of the contact iterations (the splitting of :class:`softbody.contact.Contact`
+and the active set of :class:`softbody.active_set.ActiveSet`), keeps the best iterate and
+restarts when the residual grows.
 """
 
 from __future__ import annotations
@@ -104,6 +105,63 @@ def mix(x, gx, weight, hist, restart, m: int, labels: np.ndarray | None = None):
         gamma = jnp.linalg.solve(system, rhs[..., None])[..., 0]  # (B, m)
         x_next = g - jnp.sum(gamma[labels].T * d_g, axis=0)
     return x_next.reshape(x.shape), (d_r, d_g, gram, r, g, count)
+
+
+def iterate(step, x0, q0, cache=(), *, weight, threshold, cap, history: int, restart: float,
+            labels: np.ndarray | None = None, patience: int | None = None):
+    """Anderson-accelerated fixed-point iteration that keeps its best iterate.
+
+    Each iteration maps the iterate by ``step``, keeps the output with the smallest
+    residual so far, and mixes (:func:`mix`) the pair into the next iterate; the history
+    restarts when the residual exceeds ``restart`` times the best one, when ``step`` says
+    so (a structural change: contacts made or broken), and every ``patience`` iterations
+    without progress. A diverging iteration (NaN residuals) keeps the best iterate.
+
+    Arguments:
+        step: ``(x, q, cache) -> (x_new, q_new, r, cache_new, reset)``: the map, the
+            residual ``r`` of ``x`` (a scalar), data carried to the next iteration, and a
+            boolean that restarts the history (or ``None``: never).
+        x0, q0: the start iterate (any shape) and its companion (rotations); cache: the
+            first ``cache`` (a pytree; ``()``: none).
+        weight: ``(x0.size,)`` Anderson weights; labels: Anderson blocks (see :func:`mix`).
+        threshold: stop when the residual of the last iterate is at most this; cap: the
+            iteration cap (may be traced).
+        history: Anderson history length; restart: the residual growth (> 1) that
+            restarts it.
+        patience: ``None``, or restart after this many iterations without a better
+            residual and stop after four times as many.
+
+    Returns:
+        ``(best_x, best_q, iterations, best_r, cache)``: the map output with the smallest
+        residual, its residual, the iteration count and the last cache.
+    """
+    inf = jnp.asarray(jnp.inf, x0.dtype)
+
+    def body(c):
+        x, q, k, best_x, best_q, best_r, _, hist, cache, stall = c
+        x_new, q_new, r, new_cache, reset = step(x, q, cache)
+        better = r < best_r
+        best_x = jnp.where(better, x_new, best_x)
+        best_q = jnp.where(better, q_new, best_q)
+        if patience is not None:
+            stall = jnp.where(better, 0, stall + 1)
+        grown = r > restart * best_r
+        if reset is not None:
+            grown = grown | reset
+        if patience is not None:
+            grown = grown | (stall % patience == patience - 1)
+        best_r = jnp.where(better, r, best_r)
+        x_next, hist = mix(x, x_new, weight, hist, grown, history, labels)
+        return x_next, q_new, k + 1, best_x, best_q, best_r, r, hist, new_cache, stall
+
+    def going(c):
+        more = (c[6] > threshold) & (c[2] < cap)
+        return more if patience is None else more & (c[9] < 4 * patience)
+
+    stall = None if patience is None else jnp.asarray(0)
+    init_ = (x0, q0, jnp.asarray(0), x0, q0, inf, inf, init(history, x0.size, x0.dtype, labels), cache, stall)
+    _, _, k, best_x, best_q, best_r, _, _, cache, _ = jax.lax.while_loop(going, body, init_)
+    return best_x, best_q, k, best_r, cache
 
 
 def linear_solve(matvec, b, *, history: int, rtol: float, max_iter: int, labels: np.ndarray | None = None):

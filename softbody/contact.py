@@ -526,24 +526,12 @@ class Contact:
     def _iterate(self, iteration: "ContactMap", x0, q0, threshold, max_iter: int) -> Solution:
         """Anderson-accelerated fixed-point iteration of ``iteration`` from the iterate ``x0``
         ``(n + e, 3)``; returns the best iterate's map output."""
-        zero = jnp.asarray(0)
-        inf = jnp.asarray(jnp.inf, x0.dtype)
-        fixed_point_map, weight, labels = iteration.apply, iteration.weight, iteration.labels
+        def step(x, q, cache):
+            return *iteration.apply(x, q), cache, None
 
-        def body(c):
-            x, q, k, best_x, best_q, best_r, _, hist = c
-            gx, q_new, r = fixed_point_map(x, q)
-            better = r < best_r
-            best_x = jnp.where(better, gx, best_x)
-            best_q = jnp.where(better, q_new, best_q)
-            restart = r > self.restart * best_r
-            best_r = jnp.where(better, r, best_r)  # a diverging iteration (NaN) keeps the best
-            x_next, hist = anderson.mix(x, gx, weight, hist, restart, self.history, labels)
-            return x_next, q_new, k + 1, best_x, best_q, best_r, r, hist
-
-        init = (x0, q0, zero, x0, q0, inf, inf, anderson.init(self.history, x0.size, x0.dtype, labels))
-        out = jax.lax.while_loop(lambda c: (c[6] > threshold) & (c[2] < max_iter), body, init)
-        _, _, k, best_x, best_q, best_r, _, _ = out
+        best_x, best_q, k, best_r, _ = anderson.iterate(
+            step, x0, q0, weight=iteration.weight, threshold=threshold, cap=max_iter, history=self.history,
+            restart=self.restart, labels=iteration.labels)
         return Solution(best_x, best_q, k, k, best_r)
 
 
