@@ -51,6 +51,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from softbody import linsolve
 from softbody import rotation as rot
 from softbody._interfaces import Capabilities
 from softbody._types import State
@@ -294,35 +295,10 @@ class _StepSystem(NamedTuple):
 
 
 def _pcg(matvec, precondition, b, tol, max_iter):
-    """Preconditioned conjugate gradients for ``H x = b`` (``b`` of any shape)."""
-
-    def dot(u, v):
-        return jnp.sum(u * v)
-
-    bnorm = jnp.sqrt(dot(b, b))
-    x = precondition(b)
-    r = b - matvec(x)
-    z = precondition(r)
-    p = z
-    rz = dot(r, z)
-
-    def cond(c):
-        _, r, _, _, _, k = c
-        return (jnp.sqrt(dot(r, r)) > tol * bnorm) & (k < max_iter)
-
-    def body(c):
-        x, r, z, p, rz, k = c
-        hp = matvec(p)
-        alpha = rz / dot(p, hp)
-        x = x + alpha * p
-        r = r - alpha * hp
-        z = precondition(r)
-        rz_new = dot(r, z)
-        p = z + (rz_new / rz) * p
-        return x, r, z, p, rz_new, k + 1
-
-    x, *_ = jax.lax.while_loop(cond, body, (x, r, z, p, rz, jnp.asarray(0)))
-    return x
+    """Solve ``H x = b`` (``H`` the step Hessian in its chart, ``b`` of any shape) by
+    preconditioned conjugate gradients (:func:`softbody.linsolve.conjugate_gradients`),
+    from ``x0 = precondition(b)``, until ``|b - H x| <= tol |b|``."""
+    return linsolve.conjugate_gradients(matvec, precondition, b, precondition(b), tol=tol, max_iter=max_iter)
 
 
 def segment_length(n_steps: int) -> int:

@@ -30,7 +30,7 @@ SparseCholesky     host (cholespy)       yes*   no   CPU, n >~ 400 without a com
 SparseLU           host (scipy splu)     yes*   no   CPU when cholespy is missing
 DenseCholesky      JAX (LAPACK/cuSOLVER) yes    yes  n <~ 400; any size on a GPU that
                                                      holds the n x n matrix
-PCG                JAX (while_loop)      yes    yes  GPU, vmap over many matrices,
+PCG                JAX (lineax CG)       yes    yes  GPU, vmap over many matrices,
                                                      matrices that change every step
 =================  ====================  =====  ===  ===============================
 
@@ -69,6 +69,7 @@ from dataclasses import dataclass
 
 import jax
 import jax.numpy as jnp
+import lineax as lx
 import numpy as np
 import scipy.sparse
 import scipy.sparse.linalg
@@ -563,34 +564,45 @@ class PCG(LinearSolver):
 
 
 def _pcg(matvec, b, x0, *, inverse_diagonal, tol, max_iter):
-    """Column-wise preconditioned CG for ``b`` of shape ``(n,)`` or ``(n, k)``."""
-    scale = inverse_diagonal.reshape(inverse_diagonal.shape + (1,) * (b.ndim - 1))
+    """Column-wise Jacobi-preconditioned CG for ``b`` of shape ``(n,)`` or ``(n, k)``: each
+    column is its own :func:`conjugate_gradients` solve (``vmap``)."""
 
-    def dot(u, v):
-        return jnp.sum(u * v, axis=0)
+    def column(b, x0):
+        return conjugate_gradients(matvec, lambda r: inverse_diagonal * r, b, x0, tol=tol, max_iter=max_iter)
 
-    r = b - matvec(x0)
-    z = scale * r
-    target = tol**2 * dot(b, b)
+    x = column(b, x0) if b.ndim == 1 else jax.vmap(column, in_axes=1, out_axes=1)(b, x0)
+    # A refused matrix (NaN diagonal, see PCG) stops CG at once; its solves are NaN.
+    return jnp.where(jnp.all(jnp.isfinite(inverse_diagonal)), x, jnp.nan)
 
-    def unfinished(state):
-        i, _, _, _, _, rr = state
-        return (i < max_iter) & jnp.any(rr > target)
 
-    def iterate(state):
-        i, x, r, p, rz, rr = state
-        active = rr > target
-        q = matvec(p)
-        alpha = jnp.where(active, rz / jnp.where(active, dot(p, q), 1.0), 0.0)
-        x = x + alpha * p
-        r = r - alpha * q
-        z = scale * r
-        rz_next = dot(r, z)
-        beta = jnp.where(active, rz_next / jnp.where(active, rz, 1.0), 0.0)
-        return i + 1, x, r, z + beta * p, rz_next, dot(r, r)
+def _two_norm(tree) -> jax.Array:
+    """The Euclidean norm of a pytree of arrays."""
+    return jnp.sqrt(sum(jnp.sum(leaf * leaf) for leaf in jax.tree.leaves(tree)))
 
-    state = (jnp.int32(0), x0, r, z, dot(r, z), dot(r, r))
-    return jax.lax.while_loop(unfinished, iterate, state)[1]
+
+def conjugate_gradients(matvec, precondition, b, x0, *, tol, max_iter: int):
+    """Solve ``A x = b`` for a symmetric positive definite ``A`` by lineax's preconditioned
+    conjugate gradients: the one CG of softbody (the PD matrix's :class:`PCG` and the
+    implicit adjoints' Hessian solves).
+
+    Arguments:
+        matvec: ``x -> A x``, linear, on arrays shaped like ``b``.
+        precondition: ``r -> P^-1 r``, symmetric positive definite, likewise.
+        b: the right-hand side (an array of any shape, taken as one vector).
+        x0: the start, shaped like ``b``.
+        tol: stop when ``|b - A x| <= tol |b|`` (two-norm; lineax also asks the last update
+            to be that small, in the same norm).
+        max_iter: iteration cap; reaching it is not an error (the last iterate is returned).
+
+    Returns:
+        ``x``, shaped like ``b``.
+    """
+    structure = jax.eval_shape(lambda: b)
+    spd = (lx.symmetric_tag, lx.positive_semidefinite_tag)
+    solver = lx.CG(rtol=0.0, atol=tol * _two_norm(b), norm=_two_norm, stabilise_every=None, max_steps=max_iter)
+    options = {"preconditioner": lx.FunctionLinearOperator(precondition, structure, tags=spd), "y0": x0}
+    operator = lx.FunctionLinearOperator(matvec, structure, tags=spd)
+    return lx.linear_solve(operator, b, solver, options=options, throw=False).value
 
 
 # --------------------------------------------------------------------------- host solvers
