@@ -292,6 +292,9 @@ class Coordinates:
     what one of those parts needs from the coordinates.
     """
 
+    #: the scene features these coordinates cannot step (:class:`Capabilities`)
+    capabilities: ClassVar[Capabilities] = Capabilities()
+
     def volume_weight(self, solver) -> float:
         """The scale of the volume term in the prefactored PD matrix for ``solver``."""
         raise NotImplementedError

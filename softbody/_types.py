@@ -54,6 +54,14 @@ FEATURES = {
 }
 
 
+def scene_features(*, contact: bool, skeleton: bool, rigid: bool, motion: bool, partial: bool) -> frozenset[str]:
+    """The names in :data:`FEATURES` of the features a scene has (arguments in that order:
+    contact rows, a skeleton of the user's, rigid bodies, moving clamps, partly held
+    vertices)."""
+    present = dict(zip(FEATURES, (contact, skeleton, rigid, motion, partial)))
+    return frozenset(name for name, has in present.items() if has)
+
+
 @dataclass(frozen=True)
 class Options:
     """Simulation options (static: changing them recompiles).
@@ -243,12 +251,9 @@ class Model:
         """The scene's features among :data:`FEATURES`: what a strategy must support to
         step it (:class:`softbody._interfaces.Capabilities`)."""
         rigid = sum(part.rigid is not None for part in self.bodies)
-        held = {"contact": self.has_contact,
-                "skeleton": self.rig is not None and len(self.rig.skeleton.links) > rigid,
-                "rigid bodies": rigid > 0,
-                "motion": self.moving,
-                "partly held vertices": self.free_mask.shape[1] > 1}
-        return frozenset(name for name, present in held.items() if present)
+        return scene_features(contact=self.has_contact,
+                              skeleton=self.rig is not None and len(self.rig.skeleton.links) > rigid,
+                              rigid=rigid > 0, motion=self.moving, partial=self.free_mask.shape[1] > 1)
 
     @property
     def has_contact(self) -> bool:

@@ -66,6 +66,7 @@ import jax
 import jax.numpy as jnp
 
 from softbody import anderson
+from softbody._interfaces import Capabilities
 from softbody.solvers import Solution, StepProblem
 
 __all__ = ["ActiveSet", "Delassus"]
@@ -99,6 +100,12 @@ class ActiveSet:
     Raises:
         ValueError: a bad attribute.
     """
+
+    capabilities = Capabilities(
+        refuses={feature: ("works in vertex coordinates (its Delassus operator is the vertices'); the reduced "
+                           "coordinates of a skeleton or of rigid bodies run the splitting alone")
+                 for feature in ("skeleton", "rigid bodies")},
+        instead="use Contact(active_set=None)")
 
     max_contacts: int = 128
     history: int = 20

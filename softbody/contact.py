@@ -102,7 +102,7 @@ from softbody import anderson
 from softbody.active_set import ActiveSet
 from softbody.fixed_point import closure_convert, fixed_point
 from softbody.obstacles import ObstacleRows, norm, unit
-from softbody._interfaces import ContactSweep, Coordinates, Frame
+from softbody._interfaces import Capabilities, ContactSweep, Coordinates, Frame
 from softbody.solvers import NonlinearSolver, Solution, StepProblem
 from softbody.splitting import Naive, ScaledDiagonal, Splitting
 
@@ -240,6 +240,11 @@ class Contact:
         ObstacleError: (in ``run``) an object in the scene's obstacles that is not an
             obstacle, or parameters that do not match it (a row generator's ``check``).
     """
+
+    capabilities = Capabilities(
+        refuses={"partly held vertices": "holds vertices in all three components only (its contact step projects whole "
+                                         "vertices)"},
+        instead="model the support as an obstacle (softbody.obstacles.Plane) or clamp the vertices fully")
 
     splitting: Splitting = field(default_factory=ScaledDiagonal)
     active_set: ActiveSet | None = None

@@ -21,10 +21,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from softbody import linsolve, rotation
-from softbody._interfaces import ElementTerm, Integrator, Rows, Term, VertexTerm
+from softbody._interfaces import Capabilities, ElementTerm, Integrator, Rows, Term, VertexTerm
 from softbody.rigid import RigidBody
 from softbody.scene import SoftBody, assemble
-from softbody._types import Model, Options, Params, Prepared, SceneError, State
+from softbody._types import Model, Options, Params, Prepared, SceneError, State, scene_features
 from softbody.contact import Contact
 from softbody.elastic import deformation_gradient, local_matrices, rest_geometry
 from softbody.gradients import Adjoint, Implicit
@@ -86,15 +86,25 @@ def _rig(mesh, skeleton, free: np.ndarray, scene) -> Rig | None:
     return rig
 
 
-def _check_partial(skeleton, contact: bool) -> None:
-    """Refuse partly held vertices where the step cannot hold them yet."""
-    if skeleton is not None:
-        raise SceneError("a scene with a skeleton holds vertices in all three components only: fix them with "
-                         "fixed=<selection> (or a Fix with axes='xyz'), or weld a bone with a root Fixed() joint")
-    if contact:
-        raise SceneError("contact holds vertices in all three components only: a scene with contact rows cannot "
-                         "use Fix(..., axes=...) with fewer than three axes yet; model the support as an "
-                         "obstacle (softbody.obstacles.Plane) or clamp the vertices fully")
+def _check_capabilities(features: frozenset, options: Options, reduced: bool) -> None:
+    """The capability table: every strategy the step will compose (its coordinates, reduced
+    with a skeleton or rigid bodies; contact and its fast iteration; the options' integrator
+    and adjoint) refuses the scene features it cannot handle
+    (:class:`~softbody._interfaces.Capabilities`, class attributes), before anything is
+    bound or compiled."""
+    scene = "a scene with a skeleton" if "skeleton" in features else "a scene with rigid bodies"
+    strategies = [(scene, Reduced if reduced else Vertices)]
+    if "contact" in features:
+        contact = options.contact if options.contact is not None else Contact()
+        strategies += [("contact", contact),
+                       ("Contact(active_set=ActiveSet())", getattr(contact, "active_set", None))]
+    adjoint = options.adjoint if options.adjoint is not None else Implicit()
+    strategies += [(f"Options({name}={type(strategy).__name__}())", strategy)
+                   for name, strategy in (("integrator", options.integrator), ("adjoint", adjoint))]
+    for what, strategy in strategies:
+        capabilities = getattr(strategy, "capabilities", None)  # a wrong type is refused by _compose
+        if isinstance(capabilities, Capabilities):
+            capabilities.check(features, what)
 
 
 def _stencils(terms, n: int) -> list:
@@ -154,10 +164,6 @@ def _compose(options: Options, rig: Rig | None, contact_rows: bool, parts: tuple
     if contact is not None and contact.blocks and contact.blocks[-1][1] != n:
         raise SceneError(f"Contact.blocks must end at the scene's {n} vertices, got {contact.blocks!r}; leave it at "
                          "() for build to set one block per body")
-    if contact is not None and rig is not None and contact.active_set is not None:
-        raise SceneError("Contact(active_set=...) works in vertex coordinates; a scene with a skeleton has "
-                         "reduced coordinates, whose contact steps run the splitting alone: use "
-                         "Contact(active_set=None)")
     return Step(coordinates, solver, contact)
 
 
@@ -248,9 +254,10 @@ def build(
     for s in stencils:
         block_to_data.append(None if s is None else entry_to_data[offset: offset + s.size * s.shape[1]])
         offset += 0 if s is None else s.size * s.shape[1]
-    if partial:
-        _check_partial(skeleton, bool(obstacles or generators))
-
+    features = scene_features(
+        contact=bool(obstacles or generators), skeleton=isinstance(skeleton, Skeleton) and bool(skeleton.links),
+        rigid=bool(scene.links), motion=any(part.motion is not None for part in scene.parts), partial=partial)
+    _check_capabilities(features, options, reduced=skeleton is not None or bool(scene.links))
     rig = _rig(mesh, skeleton, free, scene)
     rigid = tuple(part for part in scene.parts if part.rigid is not None)
     for i, term in enumerate(actuators):
@@ -281,10 +288,6 @@ def build(
         terms=tuple(terms), channel_names=tuple(channels), obstacles=tuple(obstacles),
         rows=generators, stiffness_damping=any(m.beta > 0 for m in mats), rig=rig, step=step, bodies=scene.parts,
     )
-    # The capability table: each strategy in the options refuses the scene features it cannot handle.
-    for field, strategy in (("integrator", options.integrator), ("adjoint", options.adjoint)):
-        if strategy is not None:
-            strategy.capabilities.check(model.features, f"Options({field}={type(strategy).__name__}())")
     params = Params(
         E=jnp.asarray([m.E for m in mats], jnp.float64),
         nu=jnp.asarray([m.nu for m in mats], jnp.float64),

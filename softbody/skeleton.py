@@ -51,7 +51,7 @@ import numpy as np
 
 from softbody import rotation as rot
 from softbody.meshing import TetMesh
-from softbody._interfaces import ContactSweep, Coordinates
+from softbody._interfaces import Capabilities, ContactSweep, Coordinates
 from softbody._types import SceneError
 from softbody.solvers import (LBFGS, LocalGlobal, Solution, StepProblem, empty_history, iterate, lbfgs_direction,
                               store_pair)
@@ -854,6 +854,10 @@ class Reduced(Coordinates):
     """
 
     solvers = (LBFGS, LocalGlobal)
+    capabilities = Capabilities(
+        refuses={"partly held vertices": "holds vertices in all three components only (its reduced coordinates move "
+                                         "whole vertices)"},
+        instead="fix them with fixed=<selection> (or a Fix with axes='xyz'), or weld a bone with a root Fixed() joint")
     rig: Rig
     backtracks: int = 8
     contact_sweeps: int = 10

@@ -12,6 +12,8 @@ import pytest
 from softbody import simulate
 from softbody._interfaces import Capabilities
 from softbody._types import FEATURES
+from softbody.active_set import ActiveSet
+from softbody.contact import Contact
 from softbody.explicit import SymplecticEuler, explicit_rollout
 from softbody.gradients import Unrolled
 from softbody.material import Material
@@ -122,3 +124,18 @@ def test_a_capability_names_only_known_features():
     with pytest.raises(ValueError, match="unknown scene features"):
         Capabilities(refuses={"cloth": "has no shells"})
     assert Capabilities().supported == tuple(FEATURES)
+
+
+def test_reduced_coordinates_and_the_active_set_refuse_from_the_table(no_compiling):
+    """Partly held vertices beside a rigid body used to pass ``build`` and fail inside the
+    first step's factorisation (``PerColumn.factorize: data must have shape (k, n)``); the
+    active set in a scene of rigid bodies is refused from the same table as with a
+    skeleton."""
+    brick = RigidBody(box((0.02, 0.02, 0.02)), density=500.0, name="brick", x0=(0.2, 0.0, 0.0))
+    with pytest.raises(SceneError, match="a scene with rigid bodies holds vertices in all three components only.*"
+                                         "it supports: contact, skeleton, rigid bodies, motion"):
+        build([SoftBody(BAR, MATERIAL, fixed=[Fix("fixed"), Fix("ymin", axes="y")], name="bar"), brick])
+    with pytest.raises(SceneError, match=r"Contact\(active_set=ActiveSet\(\)\) works in vertex coordinates.*"
+                                         r"the scene has rigid bodies.*Contact\(active_set=None\)"):
+        build([SoftBody(BAR, MATERIAL, fixed="fixed", name="bar"), brick], obstacles=[Plane(point=(0, 0, -0.01))],
+              options=Options(contact=Contact(active_set=ActiveSet())))
