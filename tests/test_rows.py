@@ -152,3 +152,22 @@ def test_gradients_through_rows(adjoint):
         ad = float(jax.jit(lambda a, d: jax.jvp(loss, (a,), (d,))[1])(args, d))
         fd = central_difference(fn, args, d, eps)
         assert abs(ad - fd) <= 1e-6 * abs(fd), (name, ad, fd)
+
+
+def test_rows_act_on_a_rigid_body_through_its_coordinates():
+    """A rigid brick sliding onto the plane: the plane as rows on every vertex steps as the
+    ``Plane`` obstacle does (to 1e-12), the rows reaching its surface vertices through the
+    reduced coordinates' contact sweep as the obstacle's do."""
+    from test_rigid import box
+
+    from softbody.rigid import RigidBody
+
+    brick = RigidBody(box((0.04, 0.03, 0.02)), density=800.0, name="brick", x0=(0.0, 0.0, 0.0105), v0=(0.3, 0.0, -0.2))
+    trajs = []
+    for scene in ({"obstacles": [Plane(mu_s=0.3, mu_k=0.3)]}, {"rows": [AbovePlane(np.arange(8), mu=0.3)]}):
+        model, params = build(brick, options=Options(dt=0.005, tol=1e-12, max_iter=5000), **scene)
+        traj = rollout(model, params, initial_state(model, params), n_steps=8)
+        assert bool(np.all(traj.info.converged))
+        trajs.append(np.asarray(traj.x))
+    assert trajs[0][..., 2].min() > -1e-9 and trajs[0][-1, :, 0].mean() > 1e-3
+    np.testing.assert_allclose(trajs[1], trajs[0], rtol=0, atol=1e-12)
