@@ -349,6 +349,8 @@ class Prepared(eqx.Module):
     inertia: Array  # scalar: 1/h^2 for dynamics, 0 for statics
     step: object = None  # the step's per-rollout data (Step.prepare)
     rows: tuple = ()  # per-generator parameters (Params.rows)
+    # the time step h the matrix was prefactored for (static: it fixes the programs); steps read it
+    dt: float = eqx.field(static=True, default=0.0)
 
 
 class RESULTS(enum.IntEnum):

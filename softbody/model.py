@@ -346,7 +346,7 @@ def initial_state(model: Model, params: Params | None = None, x=None, v=None) ->
     return State(x=x, v=v, rot=rotation.cold_start(f), t=jnp.asarray(0.0))
 
 
-def prepare(model: Model, params: Params, *, static: bool = False) -> Prepared:
+def prepare(model: Model, params: Params, *, static: bool = False, dt: float | None = None) -> Prepared:
     """Rest-shape operators, masses, weights and the factorised PD matrix for ``params``.
 
     For dynamics the matrix is ``(1/h^2 + alpha/h) M + sum_e V_e (w_s + gamma w_v + beta w_s / h)
@@ -355,8 +355,12 @@ def prepare(model: Model, params: Params, *, static: bool = False) -> Prepared:
     (its convergence proof needs the true weights), less for L-BFGS, where the matrix is
     only the initial Hessian and a softer volume weight approximates the bending
     stiffness better. Differentiable in ``params``; call it once per rollout.
+
+    ``dt`` (default ``Options.dt``) is the step size ``h`` of the steps to take
+    (``Prepared.dt``, which the steps read): an integrator whose implicit stage has another
+    size (BDF2's ``2h/3``) prepares for it instead of rebuilding the model.
     """
-    h = model.options.dt
+    h = model.options.dt if dt is None else float(dt)
     dminv, volume = rest_geometry(model, params.morph)
     mat = jnp.asarray(model.tet_material)
     w_s, w_v = pd_weights(params.E[mat], params.nu[mat])
@@ -406,4 +410,4 @@ def prepare(model: Model, params: Params, *, static: bool = False) -> Prepared:
     return Prepared(dminv=dminv, volume=volume, mass=mass[:, None], mass_alpha=mass_alpha[:, None],
                     w_s=w_s, w_v=w_v, w_b=w_b, x_rest=x_rest, terms=term_prep,
                     obstacles=tuple(params.obstacles), rows=tuple(params.rows), data=data,
-                    factor=factor, inertia=inertia, step=model.step.prepare(model, data, factor))
+                    factor=factor, inertia=inertia, step=model.step.prepare(model, data, factor), dt=h)

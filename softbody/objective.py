@@ -89,7 +89,7 @@ class _Terms(NamedTuple):
 
 
 def _terms(model: Model, prep: Prepared, x_n, v_n, q_n, activation, force, static: bool) -> _Terms:
-    h = model.options.dt
+    h = prep.dt
     gravity = jnp.asarray(model.options.gravity)
     free = jnp.asarray(model.free_mask)
     mass = prep.mass
@@ -169,7 +169,7 @@ def step_hessian(model: Model, prep: Prepared, x_n, v_n, q_n, activation, force,
         x: ``(n, 3)`` positions; q: ``(4, t)`` rotations of ``x`` (warm start, refined as in
             ``evaluate``); the rest as for :func:`step_objective`.
     """
-    h = model.options.dt
+    h = prep.dt
     free = jnp.asarray(model.free_mask)
     terms = _terms(model, prep, x_n, v_n, q_n, activation, force, static)
     x = jnp.where(free > 0, x, x_n)
@@ -264,9 +264,9 @@ def step_problem(model: Model, prep: Prepared, state: State, activation, force, 
         evaluate=evaluate,
         precondition=lambda g: solver.solve(pattern, prep.factor, g),
         diagonal=prep.data[jnp.asarray(model.diag_to_data)][:, None],
-        x_n=state.x, v_n=state.v, mass=prep.mass, free=free, dt=0.0 if static else opts.dt,
+        x_n=state.x, v_n=state.v, mass=prep.mass, free=free, dt=0.0 if static else prep.dt,
         time=state.t, rows=contact_rows(model, prep), prepared=prep.step)
-    x0 = state.x if static else jnp.where(free > 0, state.x + opts.dt * state.v, state.x)
+    x0 = state.x if static else jnp.where(free > 0, state.x + prep.dt * state.v, state.x)
     if static:
         # Actuators may load a body with no external force: measure the residual against
         # the load and the initial force imbalance together.

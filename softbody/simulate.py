@@ -225,8 +225,8 @@ class ImplicitEuler(Integrator):
     def step(self, model: Model, prep: Prepared, state: State, memory, activation, force):
         start = _step_start(model, prep, state)
         sol, info = model.options.adjoint.solve(model, prep, start, activation, force, static=False)
-        v = (sol.x - state.x) / model.options.dt
-        return State(x=sol.x, v=v, rot=sol.q, t=state.t + model.options.dt), memory, info
+        v = (sol.x - state.x) / prep.dt
+        return State(x=sol.x, v=v, rot=sol.q, t=state.t + prep.dt), memory, info
 
     def templates(self, model: Model, call: str) -> tuple[str, ...]:
         return _step_templates(model, call)
@@ -237,7 +237,7 @@ class ImplicitEuler(Integrator):
         ``(T,)`` times it started from (before a clamp motion moved the fixed vertices),
         from the ``(T + 1, n, 3)`` ``xs``, ``vs`` and the first step's activation and force
         (:func:`contact_forces` rebuilds the steps from them)."""
-        return model, xs[:-1], vs[:-1], t0 + model.options.dt * jnp.arange(xs.shape[0] - 1)
+        return model, xs[:-1], vs[:-1], t0 + prep.dt * jnp.arange(xs.shape[0] - 1)
 
 
 class BDF2(ImplicitEuler):
@@ -265,11 +265,6 @@ class BDF2(ImplicitEuler):
     """
 
     @staticmethod
-    def _inner(model: Model) -> Model:
-        """The scene whose implicit-Euler step of size ``h' = 2h/3`` is this step."""
-        return dataclasses.replace(model, options=dataclasses.replace(model.options, dt=2.0 * model.options.dt / 3.0))
-
-    @staticmethod
     def _past(model: Model, prep: Prepared, state: State, activation, force):
         """``(x_{-1}, v_{-1})``: the second-order accurate past of a first step from ``state``."""
         h = model.options.dt
@@ -282,7 +277,8 @@ class BDF2(ImplicitEuler):
         return (4.0 * now - past) / 3.0
 
     def init(self, model: Model, params: Params, state0: State) -> tuple[Prepared, tuple]:
-        return prepare(self._inner(model), params), (state0.x, state0.v, jnp.asarray(True))
+        # The implicit stage has the step size h' = 2h/3: its matrix M/h'^2 + L, prefactored once.
+        return prepare(model, params, dt=2.0 * model.options.dt / 3.0), (state0.x, state0.v, jnp.asarray(True))
 
     def step(self, model: Model, prep: Prepared, state: State, memory, activation, force):
         h = model.options.dt
@@ -291,7 +287,7 @@ class BDF2(ImplicitEuler):
                                       lambda: (x_prev, v_prev))
         start = State(x=self._blend(state.x, x_prev), v=self._blend(state.v, v_prev), rot=state.rot,
                       t=state.t + h / 3.0)
-        new, _, info = super().step(self._inner(model), prep, start, (), activation, force)
+        new, _, info = super().step(model, prep, start, (), activation, force)
         return State(x=new.x, v=new.v, rot=new.rot, t=state.t + h), (state.x, state.v, jnp.asarray(False)), info
 
     def starts(self, model: Model, prep: Prepared, xs, vs, t0, activation0, force0):
@@ -301,7 +297,7 @@ class BDF2(ImplicitEuler):
         x_prev = jnp.concatenate([x_past[None], xs[:-2]])
         v_prev = jnp.concatenate([v_past[None], vs[:-2]])
         times = t0 + h * jnp.arange(xs.shape[0] - 1) + h / 3.0
-        return self._inner(model), self._blend(xs[:-1], x_prev), self._blend(vs[:-1], v_prev), times
+        return model, self._blend(xs[:-1], x_prev), self._blend(vs[:-1], v_prev), times
 
 
 def integrator_of(model: Model) -> Integrator:
@@ -339,7 +335,7 @@ def _step_start(model: Model, prep: Prepared, state: State) -> State:
     where the clamp is at the step's end."""
     if not model.moving:
         return state
-    return eqx.tree_at(lambda s: s.x, state, clamp(model, state.x, prep.x_rest, state.t + model.options.dt))
+    return eqx.tree_at(lambda s: s.x, state, clamp(model, state.x, prep.x_rest, state.t + prep.dt))
 
 
 def contact_forces(model: Model, params: Params, traj: Trajectory, controls=None, forces=None,
