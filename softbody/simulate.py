@@ -232,12 +232,12 @@ class ImplicitEuler(Integrator):
         return _step_templates(model, call)
 
     def starts(self, model: Model, prep: Prepared, xs, vs, t0, activation0, force0):
-        """What each step of a computed trajectory solved: ``(scene, x, v, t)``, the scene
-        whose implicit-Euler step it is and the ``(T, n, 3)`` positions, velocities and
-        ``(T,)`` times it started from (before a clamp motion moved the fixed vertices),
-        from the ``(T + 1, n, 3)`` ``xs``, ``vs`` and the first step's activation and force
+        """What each step of a computed trajectory solved: ``(x, v, t)``, the ``(T, n, 3)``
+        positions, velocities and ``(T,)`` times its implicit-Euler step (of size
+        ``prep.dt``) started from (before a clamp motion moved the fixed vertices), from the
+        ``(T + 1, n, 3)`` ``xs``, ``vs`` and the first step's activation and force
         (:func:`contact_forces` rebuilds the steps from them)."""
-        return model, xs[:-1], vs[:-1], t0 + prep.dt * jnp.arange(xs.shape[0] - 1)
+        return xs[:-1], vs[:-1], t0 + prep.dt * jnp.arange(xs.shape[0] - 1)
 
 
 class BDF2(ImplicitEuler):
@@ -297,7 +297,7 @@ class BDF2(ImplicitEuler):
         x_prev = jnp.concatenate([x_past[None], xs[:-2]])
         v_prev = jnp.concatenate([v_past[None], vs[:-2]])
         times = t0 + h * jnp.arange(xs.shape[0] - 1) + h / 3.0
-        return model, self._blend(xs[:-1], x_prev), self._blend(vs[:-1], v_prev), times
+        return self._blend(xs[:-1], x_prev), self._blend(vs[:-1], v_prev), times
 
 
 def integrator_of(model: Model) -> Integrator:
@@ -376,14 +376,14 @@ def _contact_forces(model, params, xs, vs, controls, forces, t0):
     integrator = integrator_of(model)
     prep, _ = integrator.init(model, params, State(x=xs[0], v=vs[0], rot=None, t=t0))
     first = (_activation(model, None if controls is None else controls[0]), None if forces is None else forces[0])
-    solved, x_start, v_start, times = integrator.starts(model, prep, xs, vs, t0, *first)
+    x_start, v_start, times = integrator.starts(model, prep, xs, vs, t0, *first)
     free = jnp.asarray(model.free_mask)
 
     def one(x_n, v_n, t, x, a, f):
-        q_n = cold_start(deformation_gradient(solved, prep.dminv, x_n))
-        state = _step_start(solved, prep, State(x=x_n, v=v_n, rot=q_n, t=t))
-        problem, _, threshold, _ = step_problem(solved, prep, state, _activation(model, a), f, static=False)
-        q = cold_start(deformation_gradient(solved, prep.dminv, jnp.where(free > 0, x, state.x)))
+        q_n = cold_start(deformation_gradient(model, prep.dminv, x_n))
+        state = _step_start(model, prep, State(x=x_n, v=v_n, rot=q_n, t=t))
+        problem, _, threshold, _ = step_problem(model, prep, state, _activation(model, a), f, static=False)
+        q = cold_start(deformation_gradient(model, prep.dminv, jnp.where(free > 0, x, state.x)))
         return model.step.contact.report(problem, model.step.coordinates, x, q, threshold, model.options.max_iter)
 
     return jax.vmap(one, in_axes=(0, 0, 0, 0, None if controls is None else 0, None if forces is None else 0))(
