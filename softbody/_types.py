@@ -82,7 +82,8 @@ class Options:
             :func:`~softbody.model.build` pick L-BFGS. It runs in the scene's coordinates
             (a skeleton's reduced coordinates where the scene has one).
         contact: the contact solver's settings (:class:`~softbody.contact.Contact`) for a
-            scene with obstacles; ``None`` (default) lets ``build`` use ``Contact()``.
+            scene with contact (obstacles or ``build(rows=...)``); ``None`` (default) lets
+            ``build`` use ``Contact()``.
         linear_solver: a :class:`~softbody.linsolve.LinearSolver`; ``None`` lets ``build``
             pick by size.
         rotation_iterations: warm-started Newton steps of the rotation extraction per

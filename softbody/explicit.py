@@ -95,7 +95,7 @@ def explicit_rollout(model: Model, params: Params, state0: State, controls=None,
     in the loop of every rollout, :func:`softbody.simulate.integrate`).
 
     Arguments:
-        model, params: from :func:`softbody.model.build` (scenes without obstacles or a
+        model, params: from :func:`softbody.model.build` (scenes without contact or a
             skeleton: the explicit step has no contact or joint constraints).
         state0: the initial :class:`~softbody.model.State`.
         controls: ``(n_steps, n_channels)`` activations, or ``None``.
@@ -113,7 +113,7 @@ def explicit_rollout(model: Model, params: Params, state0: State, controls=None,
         ``RESULTS.success`` before it.
 
     Raises:
-        SceneError: bad control or force shapes; a scene with obstacles, a skeleton, rigid
+        SceneError: bad control or force shapes; a scene with contact, a skeleton, rigid
             bodies or a prescribed motion (:attr:`SymplecticEuler.capabilities`).
         SimulationError: with ``throw=True``, the state became non-finite (the step
             exceeded the stability limit, see :func:`critical_time_step`); names the first
