@@ -31,8 +31,10 @@ scene's obstacles are one generator; a test or a user adds others with
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Callable, ClassVar, Mapping, NamedTuple
 
+import jax.numpy as jnp
 import numpy as np
 
 from softbody._types import FEATURES, SceneError
@@ -241,6 +243,22 @@ class Frame(NamedTuple):
     mu_s: object
     mu_k: object
     restitution: object
+
+    @staticmethod
+    def deepest(frames) -> "Frame":
+        """Per point, the row of smallest gap among ``frames`` (each a :class:`Frame` of the
+        same ``m`` points; the first on a tie). A selection, not a weighted sum: rows not
+        chosen contribute nothing, not even a non-finite value."""
+        if len(frames) == 1:
+            return frames[0]
+        pick = jnp.argmin(jnp.stack([f.phi for f in frames]), axis=0)  # (m,)
+
+        def choose(column):
+            return functools.reduce(
+                lambda acc, k: jnp.where((pick == k).reshape(pick.shape + (1,) * (acc.ndim - 1)), column[k], acc),
+                range(1, len(column)), column[0])
+
+        return Frame(*(choose(column) for column in zip(*frames)))
 
 
 class Rows:

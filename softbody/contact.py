@@ -101,7 +101,7 @@ import numpy as np
 from softbody import anderson
 from softbody.active_set import ActiveSet
 from softbody.fixed_point import closure_convert, fixed_point
-from softbody.obstacles import ObstacleRows, norm, unit
+from softbody.obstacles import norm, unit
 from softbody._interfaces import Capabilities, ContactSweep, Coordinates, Frame
 from softbody.solvers import NonlinearSolver, Solution, StepProblem
 from softbody.splitting import Naive, ScaledDiagonal, Splitting
@@ -142,16 +142,8 @@ def _frames(rows, points, index, time) -> Frame:
         A :class:`~softbody._interfaces.Frame` of ``m`` rows; a point no generator reaches
         has a gap of ``_FAR``.
     """
-    frames = [generator.frame(points, index, params, time) for generator, params in rows]
-    if len(frames) == 1 and isinstance(rows[0][0], ObstacleRows):
-        return frames[0]
-    frames = [f._replace(phi=jnp.minimum(f.phi, _FAR)) for f in frames]  # no row: far away, finite
-    if len(frames) == 1:
-        return frames[0]
-    deepest = jnp.argmin(jnp.stack([f.phi for f in frames]), axis=0)  # (m,)
-    return Frame(*(functools.reduce(
-        lambda acc, k: jnp.where((deepest == k).reshape(deepest.shape + (1,) * (acc.ndim - 1)), column[k], acc),
-        range(1, len(frames)), column[0]) for column in zip(*frames)))
+    return Frame.deepest([frame._replace(phi=jnp.minimum(frame.phi, _FAR))  # no row: far away, finite
+                          for frame in (generator.frame(points, index, params, time) for generator, params in rows)])
 
 
 def _contact_step(y, x_n, v_n, h, frame, free):

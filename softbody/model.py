@@ -29,6 +29,7 @@ from softbody.contact import Contact
 from softbody.elastic import deformation_gradient, local_matrices, rest_geometry
 from softbody.gradients import Adjoint, Implicit
 from softbody.material import pd_weights
+from softbody.obstacles import ObstacleRows
 from softbody.skeleton import Reduced, Rig, Skeleton, SkeletonError
 from softbody.solvers import LBFGS, NonlinearSolver, Step, Vertices
 
@@ -297,7 +298,7 @@ def build(
         morph=jnp.zeros((n, 3), jnp.float64),
         rigid_mass=jnp.asarray([p.rigid.mass for p in rigid], jnp.float64),
         actuators=tuple(term.init_params() for term in terms),
-        obstacles=tuple(ob.init_params() for ob in obstacles),
+        obstacles=ObstacleRows(tuple(obstacles)).init_params(),
         rows=tuple(generator.init_params() for generator in generators),
     )
     return model, params

@@ -735,17 +735,12 @@ def nearest_obstacle(obstacles, points, time) -> Frame:
     Returns:
         A :class:`~softbody._interfaces.Frame` of ``m`` rows.
     """
-    rows = []
+    frames = []
     for ob, p in obstacles:
         phi, normal, vel = ob.distance(points, p, time)
         ones = jnp.ones_like(phi)
-        rows.append((phi, normal, vel, p.mu_s * ones, p.mu_k * ones, p.restitution * ones))
-    if len(rows) == 1:
-        return Frame(*rows[0])
-    pick = jax.nn.one_hot(
-        jnp.argmin(jnp.stack([r[0] for r in rows]), axis=0), len(rows), axis=0
-    )  # (k, n)
-    return Frame(*(jnp.einsum("kn,kn...->n...", pick, jnp.stack(column)) for column in zip(*rows)))
+        frames.append(Frame(phi, normal, vel, p.mu_s * ones, p.mu_k * ones, p.restitution * ones))
+    return Frame.deepest(frames)
 
 
 @dataclass(frozen=True)
