@@ -64,6 +64,7 @@ _NAMES = {
     "Membrane": "softbody.shell",
     "Skeleton": "softbody.skeleton",
     "Contact": "softbody.contact",
+    "Touch": "softbody.pairs",
     "RESULTS": "softbody._types",
     **dict.fromkeys(("BDF2", "ImplicitEuler", "SimulationError", "Trajectory", "check_trajectory", "contact_forces",
                     "rollout", "solve_static", "step"), "softbody.simulate"),
@@ -71,8 +72,8 @@ _NAMES = {
     **dict.fromkeys(("Adjoint", "Implicit", "ImplicitForward", "Unrolled", "check_grad"), "softbody.gradients"),
 }
 #: Submodules reachable as attributes (``sb.meshing``, ``sb.contact``, ...).
-_MODULES = ("actuators", "contact", "control", "io", "linsolve", "meshing", "obstacles", "reference", "render",
-            "skeleton", "viewer")
+_MODULES = ("actuators", "contact", "control", "io", "linsolve", "meshing", "obstacles", "pairs", "reference",
+            "render", "skeleton", "viewer")
 
 __all__ = sorted(_NAMES) + list(_MODULES)
 

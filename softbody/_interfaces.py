@@ -25,7 +25,9 @@ differentiable, in ``params.actuators``) and per-rollout data (``prepare``).
 **Contact rows.** Contact is made of rows (:class:`Rows` generators, each giving a
 :class:`Frame` per vertex: gap, normal, surface velocity, friction, restitution). The
 scene's obstacles are one generator; a test or a user adds others with
-``build(rows=[...])``; the contact solver meets them all alike.
+``build(rows=[...])``; the contact solver meets them all alike. Rows that couple
+vertices of the scene (a vertex touching a triangle of another body) come from
+:class:`PairRows` generators (:class:`PairFrame`): their forces act on both sides.
 """
 
 from __future__ import annotations
@@ -279,6 +281,9 @@ class Rows:
     implicit derivative reaches them through the frame.
     """
 
+    #: rows on one vertex each (:class:`PairRows` are ``"pair"``)
+    kind: ClassVar[str] = "vertex"
+
     def init_params(self):
         """The generator's design parameters (a pytree; ``()``: none)."""
         return ()
@@ -297,6 +302,75 @@ class Rows:
         Returns:
             A :class:`Frame` of ``m`` rows (``phi = inf`` where the generator has none).
         """
+        raise NotImplementedError
+
+
+class PairFrame(NamedTuple):
+    """Contact rows that couple several vertices (a vertex and a triangle of a surface):
+    one row per entry, its gap a weighted sum of the vertices' positions along its normal.
+
+    Attributes:
+        vertices: ``(m, 4)`` int vertex indices of each row (the touching vertex first).
+        weights: ``(m, 4)`` the row's weights on them (``1`` on the touching vertex, minus
+            the barycentric coordinates of the touched point on the triangle's): the
+            row's relative position is ``sum_a weights_a x_a``, and a force ``f`` on the
+            row acts as ``weights_a f`` on vertex ``a``.
+        phi: ``(m,)`` signed gap, m (< 0: inside; ``inf`` on a row that is not there).
+        normal: ``(m, 3)`` unit normals, pointing from the touched surface to the vertex.
+        mu_s, mu_k: ``(m,)`` static and kinetic friction coefficients (``mu_k <= mu_s``).
+        restitution: ``(m,)`` coefficients of restitution in [0, 1].
+    """
+
+    vertices: object
+    weights: object
+    phi: object
+    normal: object
+    mu_s: object
+    mu_k: object
+    restitution: object
+
+
+class PairRows:
+    """A generator of contact rows between vertices of the scene (bodies touching bodies).
+
+    Each row keeps a vertex out of a triangle of another surface (:class:`PairFrame`);
+    the contact force of a row acts on both sides, distributed by the row's weights. The
+    contact solver (:class:`softbody.contact.Contact`) asks the generator once per step
+    which rows there are (:meth:`select`, at the step's start and its predicted end,
+    outside differentiation: the contact set of a step is fixed), then for their frames at
+    trial positions (:meth:`frame`, differentiable).
+
+    A generator is static (hashable); :func:`softbody.model.build` binds it to the scene's
+    mesh (:meth:`bind`), which resolves the names it was given into vertex and triangle
+    indices; its parameters (``init_params``, in ``params.rows``) are differentiable.
+    """
+
+    kind: ClassVar[str] = "pair"
+    #: the number of rows the generator puts on a step (static; set by :meth:`bind`)
+    size: int = 0
+
+    def init_params(self):
+        """The generator's design parameters (a pytree)."""
+        return ()
+
+    def check(self, params) -> None:
+        """Refuse malformed parameters before anything compiles (raises ``ValueError``)."""
+
+    def bind(self, mesh, parts) -> "PairRows":
+        """The generator on a scene: ``mesh`` the scene's :class:`~softbody.meshing.TetMesh`,
+        ``parts`` its bodies (:class:`softbody.scene.BodyPart`). Raises ``SceneError`` on
+        names that are not the scene's."""
+        raise NotImplementedError
+
+    def select(self, x_start, x_end, params):
+        """The rows of one step (a pytree of fixed shapes, not differentiated), chosen from
+        the positions ``x_start`` and ``x_end`` ``(n, 3)`` at the step's start and its
+        predicted end."""
+        raise NotImplementedError
+
+    def frame(self, x, selection, params) -> PairFrame:
+        """The :class:`PairFrame` of :attr:`size` rows of ``selection`` at positions ``x``
+        ``(n, 3)``."""
         raise NotImplementedError
 
 

@@ -46,6 +46,7 @@ class SceneError(ValueError):
 #: The scene features that strategies may or may not support (:attr:`Model.features`;
 #: :class:`softbody._interfaces.Capabilities`), each with how a scene comes to have it.
 FEATURES = {
+    "pair contact": "build(rows=[Touch(...)]): bodies touching bodies",
     "contact": "build(obstacles=...) or build(rows=...)",
     "skeleton": "build(skeleton=...)",
     "rigid bodies": "RigidBody",
@@ -54,11 +55,13 @@ FEATURES = {
 }
 
 
-def scene_features(*, contact: bool, skeleton: bool, rigid: bool, motion: bool, partial: bool) -> frozenset[str]:
-    """The names in :data:`FEATURES` of the features a scene has (arguments in that order:
-    contact rows, a skeleton of the user's, rigid bodies, moving clamps, partly held
-    vertices)."""
-    present = dict(zip(FEATURES, (contact, skeleton, rigid, motion, partial)))
+def scene_features(*, contact: bool, pairs: bool, skeleton: bool, rigid: bool, motion: bool,
+                   partial: bool) -> frozenset[str]:
+    """The names in :data:`FEATURES` of the features a scene has (arguments: contact rows,
+    pair rows among them, a skeleton of the user's, rigid bodies, moving clamps, partly
+    held vertices)."""
+    present = {"pair contact": pairs, "contact": contact, "skeleton": skeleton, "rigid bodies": rigid,
+               "motion": motion, "partly held vertices": partial}
     return frozenset(name for name, has in present.items() if has)
 
 
@@ -252,7 +255,7 @@ class Model:
         """The scene's features among :data:`FEATURES`: what a strategy must support to
         step it (:class:`softbody._interfaces.Capabilities`)."""
         rigid = sum(part.rigid is not None for part in self.bodies)
-        return scene_features(contact=self.has_contact,
+        return scene_features(contact=self.has_contact, pairs=any(g.kind == "pair" for g in self.rows),
                               skeleton=self.rig is not None and len(self.rig.skeleton.links) > rigid,
                               rigid=rigid > 0, motion=self.moving, partial=self.free_mask.shape[1] > 1)
 

@@ -102,9 +102,10 @@ class ActiveSet:
     """
 
     capabilities = Capabilities(
-        refuses={feature: ("works in vertex coordinates (its Delassus operator is the vertices'); the reduced "
-                           "coordinates of a skeleton or of rigid bodies run the splitting alone")
-                 for feature in ("skeleton", "rigid bodies")},
+        refuses={**{feature: ("works in vertex coordinates (its Delassus operator is the vertices'); the reduced "
+                              "coordinates of a skeleton or of rigid bodies run the splitting alone")
+                    for feature in ("skeleton", "rigid bodies")},
+                 "pair contact": "projects rows on one vertex each; rows between bodies run in the splitting"},
         instead="use Contact(active_set=None)")
 
     max_contacts: int = 128

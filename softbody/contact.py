@@ -102,7 +102,7 @@ from softbody import anderson
 from softbody.active_set import ActiveSet
 from softbody.fixed_point import closure_convert, fixed_point
 from softbody.obstacles import norm, unit
-from softbody._interfaces import Capabilities, ContactSweep, Coordinates, Frame
+from softbody._interfaces import Capabilities, ContactSweep, Coordinates, Frame, PairFrame, PairRows, Rows
 from softbody.solvers import NonlinearSolver, Solution, StepProblem
 from softbody.splitting import Naive, ScaledDiagonal, Splitting
 
@@ -131,19 +131,102 @@ _FAR = 1e30
 
 
 def _frames(rows, points, index, time) -> Frame:
-    """Per point, the deepest of the rows that the scene's generators put on it.
+    """Per point, the deepest of the rows that the scene's generators of vertex rows
+    (:class:`~softbody._interfaces.Rows`) put on it.
 
     Arguments:
-        rows: ``((generator, params), ...)`` of the step (:attr:`StepProblem.rows`), at
-            least one.
+        rows: ``((generator, params), ...)`` of the step (:attr:`StepProblem.rows`); pair
+            generators among them are not asked here (see :func:`_pair_frame`).
         points: ``(m, 3)`` trial positions of the vertices ``index`` ``(m,)``; time: s.
 
     Returns:
         A :class:`~softbody._interfaces.Frame` of ``m`` rows; a point no generator reaches
         has a gap of ``_FAR``.
     """
-    return Frame.deepest([frame._replace(phi=jnp.minimum(frame.phi, _FAR))  # no row: far away, finite
-                          for frame in (generator.frame(points, index, params, time) for generator, params in rows)])
+    frames = [frame._replace(phi=jnp.minimum(frame.phi, _FAR))  # no row: far away, finite
+              for frame in (generator.frame(points, index, params, time)
+                            for generator, params in rows if isinstance(generator, Rows))]
+    if not frames:  # pair rows alone
+        m, zero = points.shape[0], jnp.zeros(points.shape[0], points.dtype)
+        return Frame(jnp.full(m, _FAR, points.dtype), jnp.zeros_like(points), jnp.zeros_like(points), zero, zero,
+                     zero)
+    return Frame.deepest(frames)
+
+
+class _Pairs(NamedTuple):
+    """The pair rows of one step: ``((generator, params, selection), ...)`` (the selection
+    made once at the step's start, :meth:`~softbody._interfaces.PairRows.select`)."""
+
+    rows: tuple
+
+    @staticmethod
+    def select(problem: StepProblem, x_end) -> "_Pairs":
+        return _Pairs(tuple((generator, params, generator.select(problem.x_n, x_end, params))
+                            for generator, params in problem.rows if isinstance(generator, PairRows)))
+
+    @property
+    def size(self) -> int:
+        return sum(generator.size for generator, _, _ in self.rows)
+
+    @property
+    def selection(self) -> tuple:
+        return tuple(selection for _, _, selection in self.rows)
+
+    def reselect(self, problem: StepProblem, x_end) -> "_Pairs":
+        """The rows that a step ending at ``x_end`` ``(n, 3)`` meets."""
+        return _Pairs.select(problem, jax.lax.stop_gradient(x_end))
+
+    def chosen(self, selection) -> "_Pairs":
+        """These generators with the selection ``selection`` (as :attr:`selection` gives)."""
+        return _Pairs(tuple((g, p, s) for (g, p, _), s in zip(self.rows, selection)))
+
+    def frame(self, x) -> PairFrame:
+        """The rows' :class:`~softbody._interfaces.PairFrame` at positions ``x`` ``(n, 3)``
+        (gaps clamped to ``_FAR``)."""
+        frames = [generator.frame(x, selection, params) for generator, params, selection in self.rows]
+        frame = PairFrame(*(jnp.concatenate(column) for column in zip(*frames)))
+        return frame._replace(phi=jnp.minimum(frame.phi, _FAR))
+
+    def gap(self, x):
+        """The smallest gap of the rows at ``x`` (``_FAR`` without rows)."""
+        return jnp.min(self.frame(x).phi) if self.rows else jnp.asarray(_FAR, x.dtype)
+
+
+def _spread(frame: PairFrame, force, n: int):
+    """``(n, 3)``: the rows' forces ``force`` ``(m, 3)`` (each on its touching vertex) on the
+    vertices, by the rows' weights (the reactions on the touched triangles included)."""
+    return jnp.zeros((n, 3), force.dtype).at[frame.vertices.ravel()].add(
+        (frame.weights[:, :, None] * force[:, None, :]).reshape(-1, 3))
+
+
+def _pair_update(frame: PairFrame, force, z, x_n, v_n, h, compliance):
+    """One projected Jacobi update of the pair rows' forces ``force`` ``(m, 3)`` (N, world
+    frame, on each row's touching vertex) at trial positions ``z`` ``(n, 3)``.
+
+    Each row's force is corrected by what closes its gap and cancels its relative slip
+    through the row's compliance ``W = sum_a w_a^2 c_a / P_a`` (``compliance`` ``(n, 1)``:
+    ``c_a / P_a``, the vertex's sweep compliance times the number of rows on it, zero on
+    held vertices), then projected on the friction cone: normal part ``>= 0``; stick if
+    the tangential part fits the static cone, else ``mu_k`` times the normal part against
+    the slip. At a fixed point (``force`` unchanged) every row is complementary: a
+    positive normal force on a closed gap (at the restitution's target), a zero force on
+    an open one, and Coulomb's law tangentially.
+    """
+    live = frame.phi < _FAR
+    w = frame.weights[:, :, None]  # (m, 4, 1)
+    normal = frame.normal
+    W = jnp.sum(frame.weights**2 * compliance[frame.vertices, 0], axis=1)  # (m,)
+    W = jnp.where(live & (W > 0), W, 1.0)
+    v_rel = jnp.sum(w * v_n[frame.vertices], axis=1)
+    approach = jnp.sum(v_rel * normal, axis=-1)
+    depth = h * frame.restitution * jnp.maximum(-approach, 0.0) - frame.phi
+    f_n = jnp.sum(force * normal, axis=-1)
+    f_n_new = jnp.maximum(f_n + depth / W, 0.0)
+    slip = _tangential(jnp.sum(w * (z[frame.vertices] - x_n[frame.vertices]), axis=1), normal)
+    trial = _tangential(force, normal) - slip / W[:, None]
+    stick = norm(trial) <= frame.mu_s * f_n_new
+    f_t = jnp.where(stick[:, None], trial, (frame.mu_k * f_n_new)[:, None] * unit(trial, jnp.zeros_like(trial)))
+    return jnp.where(live[:, None], f_n_new[:, None] * normal + f_t, 0.0)
 
 
 def _contact_step(y, x_n, v_n, h, frame, free):
@@ -310,12 +393,13 @@ class Contact:
                 "the Naive splitting has nothing to invert in a static solve (no mass): "
                 "use ScaledDiagonal() or Diagonal()"
             )
-        iteration = self.map(problem, coordinates)
+        pairs = _Pairs.select(problem, jax.lax.stop_gradient(x0))
+        iteration = self.map(problem, coordinates, pairs)
         n = x0.shape[0]
         free = problem.free[:, 0] > 0
         vertices = jnp.arange(n)
 
-        def distance(x, t):
+        def distance(x, t):  # per vertex, to the vertex rows
             return jnp.where(free, _frames(problem.rows, x, vertices, t).phi, jnp.inf)
 
         start = jax.lax.stop_gradient(
@@ -331,7 +415,9 @@ class Contact:
             x0,
             q0,
         )
-        sol, cache = solve(*jax.lax.stop_gradient((x0, q0, *consts)))
+        sol, cache, selection = solve(*jax.lax.stop_gradient((x0, q0, *consts)))
+        if pairs.size:  # the rows the solve ended with
+            iteration = self.map(problem, coordinates, pairs.chosen(selection))
         fixed_point_map = iteration.apply
         if fast is None:
             position = lambda x, q: fixed_point_map(x, q)[0]  # noqa: E731
@@ -352,13 +438,14 @@ class Contact:
         )
         return sol._replace(x=_positions(fixed_point(position, linear_solve, sol.x, sol.q, *consts), n))
 
-    def map(self, problem: StepProblem, coordinates: Coordinates) -> "ContactMap":
-        """The fixed-point map of one iteration, on the iterate ``X`` ``(n + e, 3)``: the
-        positions and the coordinates' extra rows (see
-        :class:`~softbody._interfaces.ContactSweep`).
+    def map(self, problem: StepProblem, coordinates: Coordinates, pairs: _Pairs = _Pairs(())) -> "ContactMap":
+        """The fixed-point map of one iteration, on the iterate ``X`` ``(n + e + m, 3)``: the
+        positions, the coordinates' extra rows (see
+        :class:`~softbody._interfaces.ContactSweep`) and the forces of the step's ``m`` pair
+        rows (N, on each row's touching vertex; see :func:`_pair_update`).
 
         Arguments:
-            problem: the step; coordinates: its unknowns.
+            problem: the step; coordinates: its unknowns; pairs: the step's pair rows.
 
         Returns:
             A :class:`ContactMap`.
@@ -368,28 +455,47 @@ class Contact:
         parts = coordinates.contact_sweep(problem, p, self._law(problem))
         touching, n, t_end = parts.touching, problem.x_n.shape[0], problem.time + h
         vertices = jnp.arange(n)
+        extra, m = len(parts.owners), pairs.size
+        rows = n + extra
 
         def apply(x, q):
+            x, force = (x[:rows], x[rows:]) if m else (x, None)
             placed, aux = parts.place(x)
             _, g, q = problem.evaluate(placed, q)
+            if m:  # the pair rows' forces join the sweep's right-hand side
+                g = g - touching * _spread(pairs.frame(_positions(placed, n)), force, n)
             y = placed - g / p  # one splitting sweep
             frame = _frames(problem.rows, y, vertices, t_end)
             x_new = jnp.where(
                 touching > 0, _contact_step(y, problem.x_n, problem.v_n, h, frame, touching), placed
             )
             x_new, rest = parts.sweep(x, x_new, g, aux)
+            if m:  # the pair rows' forces, updated at the new positions, move them
+                z = _positions(x_new, n)
+                pair = pairs.frame(z)
+                live = (pair.phi < _FAR)[:, None] & (pair.weights != 0)
+                count = jnp.zeros(n).at[pair.vertices.ravel()].add(live.ravel().astype(z.dtype))[:, None]
+                force_new = _pair_update(pair, force, z, problem.x_n, problem.v_n, h,
+                                         touching * jnp.maximum(count, 1.0) / p)
+                x_new = x_new.at[:n].add(touching * _spread(pair, force_new - force, n) / p)
+                rest = jnp.concatenate([rest, (force_new - force).ravel()])
+                x_new = jnp.concatenate([x_new, force_new])
             residual = norm(jnp.concatenate([(touching * p * (_positions(x_new, n) - placed)).ravel(), rest]))
             return x_new, q, residual  # = |grad Phi(x) - r|
 
         weight = jnp.broadcast_to(jnp.sqrt(p) * problem.free, problem.x_n.shape).ravel()
-        extra = len(parts.owners)
         if extra:
             weight = jnp.concatenate([weight, jnp.broadcast_to(jnp.sqrt(parts.scale), (extra, 3)).ravel()])
+        if m:  # a force row weighs as its touching vertex's compliance (force / sqrt(P): sqrt(N m))
+            touching_vertex = pairs.frame(problem.x_n).vertices[:, 0]
+            weight = jnp.concatenate([weight, jnp.repeat(1.0 / jnp.sqrt(p[touching_vertex, 0]), 3)])
 
         def lift(x):
-            return jnp.concatenate([x, jnp.zeros((extra, 3), x.dtype)]) if extra else x
+            return jnp.concatenate([x, jnp.zeros((extra + m, 3), x.dtype)]) if extra + m else x
 
-        return ContactMap(apply, weight, self._labels(parts.owners), lift, parts)
+        # bodies that touch each other share one set of Anderson coefficients
+        labels = None if m else self._labels(parts.owners)
+        return ContactMap(apply, weight, labels, lift, parts, pairs)
 
     def report(self, problem: StepProblem, coordinates: Coordinates, x, q, threshold, max_iter: int):
         """The contact forces and states at a step's solution.
@@ -476,12 +582,17 @@ class Contact:
     ):
         """The forward solve: the free-step shortcut, else the contact iteration.
 
-        Returns ``(solution, cache)``: the solution on the iterate ``(n + e, 3)`` and the
-        cache of the fast iteration's last active set (``None`` without one)."""
+        Returns ``(solution, cache, selection)``: the solution on the iterate ``(n + e + m,
+        3)``, the cache of the fast iteration's last active set (``None`` without one) and
+        the selection of the pair rows it solved with (``()`` without pair rows)."""
 
         t_end = problem.time + problem.dt
         n = x0.shape[0]
-        near = jnp.min(start) <= self.margin
+        pairs = iteration.pairs
+        near = jnp.min(start)
+        if pairs.size:
+            near = jnp.minimum(near, jnp.minimum(pairs.gap(problem.x_n), pairs.gap(x0)))
+        near = near <= self.margin
         no = jnp.asarray(False)
         cache0 = None if fast is None else fast[1]
         lifted = iteration.lift(x0)
@@ -513,12 +624,50 @@ class Contact:
         # Each branch is traced once: the contact iteration runs when the start is near an
         # obstacle or when the free step's result penetrates one.
         sol, cache = jax.lax.cond(near, skipped, free_step)
+        x1 = _positions(sol.x, n)
+        if not pairs.size:
+            def redo():
+                again, cache = contact()
+                return again._replace(evaluations=again.evaluations + sol.evaluations), cache
 
-        def redo():
-            again, cache = contact()
-            return again._replace(evaluations=again.evaluations + sol.evaluations), cache
+            return *jax.lax.cond(near | (jnp.min(distance(x1, t_end)) < 0), redo, lambda: (sol, cache)), ()
 
-        return jax.lax.cond(near | (jnp.min(distance(_positions(sol.x, n), t_end)) < 0), redo, lambda: (sol, cache))
+        # Pair rows: those of the free step's end where it ran, else of the predicted end
+        reached = pairs.reselect(problem, x1)
+        selection = jax.tree.map(lambda a, b: jnp.where(near, a, b), pairs.selection, reached.selection)
+        penetrates = (jnp.min(distance(x1, t_end)) < 0) | (reached.gap(x1) < 0)
+
+        def redo_pairs():
+            again, selection_used = self._iterate_pairs(problem, coordinates, pairs, selection, x0, q0, threshold,
+                                                        max_iter)
+            return again._replace(evaluations=again.evaluations + sol.evaluations), selection_used
+
+        sol, selection = jax.lax.cond(near | penetrates, redo_pairs, lambda: (sol, selection))
+        return sol, cache, selection
+
+    def _iterate_pairs(self, problem, coordinates, pairs: _Pairs, selection, x0, q0, threshold, max_iter: int):
+        """The contact iteration with pair rows: solved with the rows of ``selection``; if
+        its result meets rows it did not have (a vertex inside a triangle that it was not
+        paired with at the start), solved once more from the start with the rows of its
+        result. Returns ``(solution, the selection of its rows)``."""
+        lifted = self.map(problem, coordinates, pairs.chosen(selection)).lift(x0)
+        zero = jnp.asarray(0)
+
+        def attempt(carry):
+            selection, previous, k, _ = carry
+            sol = self._iterate(self.map(problem, coordinates, pairs.chosen(selection)), lifted, q0, threshold,
+                                max_iter)
+            sol = sol._replace(iterations=sol.iterations + previous.iterations,
+                               evaluations=sol.evaluations + previous.evaluations)
+            x1 = _positions(sol.x, x0.shape[0])
+            reached = pairs.reselect(problem, x1)
+            again = (reached.gap(x1) < -self.margin) & (k == 0)  # a row it did not have is penetrated
+            return jax.tree.map(lambda a, b: jnp.where(again, a, b), reached.selection, selection), sol, k + 1, again
+
+        start = Solution(lifted, q0, zero, zero, jnp.asarray(jnp.inf, x0.dtype), jnp.asarray(False))
+        selection, sol, _, _ = jax.lax.while_loop(lambda c: (c[2] == 0) | c[3], attempt,
+                                                  (selection, start, zero, jnp.asarray(False)))
+        return sol, selection
 
     def _iterate(self, iteration: "ContactMap", x0, q0, threshold, max_iter: int) -> Solution:
         """Anderson-accelerated fixed-point iteration of ``iteration`` from the iterate ``x0``
@@ -543,6 +692,7 @@ class ContactMap(NamedTuple):
         labels: the Anderson block of each flattened entry (static), or ``None``.
         lift: ``x (n, 3) -> X``: positions with zero extra rows (no contact forces).
         parts: the coordinates' :class:`~softbody._interfaces.ContactSweep`.
+        pairs: the step's pair rows (their selection).
     """
 
     apply: Callable
@@ -550,3 +700,4 @@ class ContactMap(NamedTuple):
     labels: np.ndarray | None
     lift: Callable
     parts: ContactSweep
+    pairs: _Pairs = _Pairs(())

@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from softbody import linsolve, rotation
-from softbody._interfaces import Capabilities, ElementTerm, Integrator, Rows, Term, VertexTerm
+from softbody._interfaces import Capabilities, ElementTerm, Integrator, PairRows, Rows, Term, VertexTerm
 from softbody.rigid import RigidBody
 from softbody.scene import SoftBody, assemble
 from softbody._types import Model, Options, Params, Prepared, SceneError, State, scene_features
@@ -233,9 +233,11 @@ def build(
                              "softbody._interfaces.VertexTerm (or ElementTerm, VolumeTerm)")
     generators = tuple(rows)  # (the name rows is the pattern's below)
     for i, generator in enumerate(generators):
-        if not isinstance(generator, Rows):
-            raise SceneError(f"rows[{i}] is a {type(generator).__name__}, not a contact row generator; subclass "
+        if not isinstance(generator, (Rows, PairRows)):
+            raise SceneError(f"rows[{i}] is a {type(generator).__name__}, not a contact row generator; give "
+                             "softbody.pairs.Touch(...) for bodies touching bodies, or subclass "
                              "softbody._interfaces.Rows (obstacles go in obstacles=[...])")
+    generators = tuple(g.bind(mesh, scene.parts) if isinstance(g, PairRows) else g for g in generators)
     stencils = _stencils((*scene.terms, *actuators, *terms), n)
     tets = mesh.tets.astype(np.int64)
     blocks = [tets] + [s for s in stencils if s is not None]  # each (m, k): its k x k entries
@@ -256,7 +258,7 @@ def build(
         block_to_data.append(None if s is None else entry_to_data[offset: offset + s.size * s.shape[1]])
         offset += 0 if s is None else s.size * s.shape[1]
     features = scene_features(
-        contact=bool(obstacles or generators), skeleton=isinstance(skeleton, Skeleton) and bool(skeleton.links),
+        contact=bool(obstacles or generators), pairs=any(isinstance(g, PairRows) for g in generators), skeleton=isinstance(skeleton, Skeleton) and bool(skeleton.links),
         rigid=bool(scene.links), motion=any(part.motion is not None for part in scene.parts), partial=partial)
     _check_capabilities(features, options, reduced=skeleton is not None or bool(scene.links))
     rig = _rig(mesh, skeleton, free, scene)

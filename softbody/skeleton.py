@@ -856,7 +856,9 @@ class Reduced(Coordinates):
     solvers = (LBFGS, LocalGlobal)
     capabilities = Capabilities(
         refuses={"partly held vertices": "holds vertices in all three components only (its reduced coordinates move "
-                                         "whole vertices)"},
+                                         "whole vertices)",
+                 "pair contact": "does not carry contact rows between bodies yet (its contact sweep moves bones and "
+                                 "rigid bodies by their obstacle rows alone)"},
         instead="fix them with fixed=<selection> (or a Fix with axes='xyz'), or weld a bone with a root Fixed() joint")
     rig: Rig
     backtracks: int = 8

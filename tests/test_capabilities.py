@@ -21,6 +21,7 @@ from softbody.meshing.grid import grid_box
 from softbody.meshing.mesh import Region
 from softbody.model import Options, SceneError, build, initial_state, prepare
 from softbody.obstacles import Plane
+from softbody.pairs import Touch
 from softbody.reference import diffrax_rollout, newton_rollout, newton_static, newton_step
 from softbody.rigid import RigidBody
 from softbody.scene import Fix, SoftBody
@@ -36,6 +37,10 @@ EXPLICIT = Options(dt=1e-4, integrator=SymplecticEuler(jnp.asarray(1e-4)))
 
 def _scene(feature, options=Options()):
     """A small scene with exactly one feature of the table (``None``: none)."""
+    if feature == "pair contact":
+        block = grid_box((0.02, 0.02, 0.02), (1, 1, 1), origin=(0.0, 0.0, 0.021))
+        return build([SoftBody(BAR, MATERIAL, fixed="fixed", name="bar"), SoftBody(block, MATERIAL, name="block")],
+                     rows=[Touch("block", "bar")], options=options)
     if feature == "contact":
         return build(SoftBody(BAR, MATERIAL, fixed="fixed"), obstacles=[Plane(point=(0, 0, -0.01))], options=options)
     if feature == "skeleton":
@@ -57,10 +62,12 @@ def _scene(feature, options=Options()):
 @pytest.mark.parametrize("feature", [None, *FEATURES])
 def test_a_model_knows_its_features(feature):
     model, _ = _scene(feature)
-    assert model.features == (frozenset() if feature is None else {feature})
+    # pair rows are contact rows: a scene with them has both features
+    assert model.features == (frozenset() if feature is None else {feature} | ({"contact"} if feature == "pair contact"
+                                                                              else set()))
 
 
-@pytest.mark.parametrize("feature", ["contact", "skeleton", "rigid bodies", "motion"])
+@pytest.mark.parametrize("feature", ["pair contact", "contact", "skeleton", "rigid bodies", "motion"])
 def test_an_explicit_integrator_in_the_options_refuses_what_it_would_drop(feature, no_compiling):
     """``Options(integrator=SymplecticEuler(...))`` used to pass ``build`` and step through
     contact and joints as if they were not there."""

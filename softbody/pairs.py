@@ -1,0 +1,226 @@
+"""Bodies touching bodies: contact rows between the surfaces of two bodies.
+
+``Touch("cube", "slab", mu_s=0.5, mu_k=0.4)`` in ``build(rows=[...])`` keeps every
+surface vertex of each body out of the other body's surface, with dry friction and
+restitution, in the same implicit step and contact iteration as the obstacles
+(:class:`softbody.contact.Contact`). Its rows are vertex-triangle rows
+(:class:`~softbody._interfaces.PairFrame`): each couples a surface vertex ``p`` of one
+body with a triangle ``(a, b, c)`` of the other's surface, its gap the distance of ``p``
+above the triangle's plane less the contact ``thickness``::
+
+    phi = n . (x_p - x_a) - thickness,      n the triangle's outward unit normal
+
+and its force acts on ``p`` along ``+n`` and on the triangle's vertices along ``-n``,
+distributed by the barycentric coordinates of ``p``'s projection (clamped to the
+triangle): the row's weights are ``(1, -u, -v, -w)``.
+
+**Which rows.** Once per step (:meth:`Touch.select`, not differentiated: a step's
+contact set is fixed), each surface vertex is paired with the nearest triangle of the
+other body that it lies over (its projection on the triangle's plane falls inside the
+triangle: a vertex below a box's bottom edge is not paired with the box's side, whose
+plane passes through it) at the step's predicted end, and the row is kept where that
+distance is below the reach of the step's motion (the thickness plus twice the largest motion of
+the vertex and the triangle's vertices from the step's start to its predicted end), so a
+row exists wherever the step could bring the two together. The gap is then a smooth
+function of the positions over the step: the triangle's plane, extended beyond its edges
+(a vertex sliding off one triangle onto its neighbour in the same plane stays supported
+for the step). The choice is brute force over the surfaces' vertex-triangle pairs, ``P x
+T`` per step: fine for scenes of a few thousand surface triangles.
+
+Limits of this version (refused by :func:`softbody.model.build` or by :class:`Touch`):
+soft bodies only (rigid bodies and skeletons step in reduced coordinates, which do not
+carry pair rows yet), two distinct bodies (no self-contact), vertex-triangle rows only
+(no edge-edge rows: a sharp edge crossing another body's edge between vertices is not
+seen), and no check of tunnelling through a thin body within one step.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from softbody._interfaces import PairFrame, PairRows
+from softbody._types import SceneError
+
+__all__ = ["Touch", "point_triangle_distance"]
+
+# a vertex lies over a triangle where its projection's barycentric coordinates are all
+# >= -_INSIDE (a sliver of slack: a vertex over a shared edge lies over both triangles)
+_INSIDE = 1e-6
+
+
+def _barycentric(p, a, b, c):
+    """Barycentric coordinates ``(u, v, w)`` ``(..., 3)`` of the projection of ``p`` onto the
+    plane of the triangle ``(a, b, c)`` (each ``(..., 3)``); unclamped."""
+    e1, e2, d = b - a, c - a, p - a
+    d00, d01, d11 = jnp.sum(e1 * e1, -1), jnp.sum(e1 * e2, -1), jnp.sum(e2 * e2, -1)
+    d20, d21 = jnp.sum(d * e1, -1), jnp.sum(d * e2, -1)
+    denom = d00 * d11 - d01**2
+    v = (d11 * d20 - d01 * d21) / denom
+    w = (d00 * d21 - d01 * d20) / denom
+    return jnp.stack([1.0 - v - w, v, w], axis=-1)
+
+
+def _segment_distance(p, a, b):
+    """Distance from ``p`` to the segment ``ab`` (each ``(..., 3)``)."""
+    ab = b - a
+    t = jnp.clip(jnp.sum((p - a) * ab, -1) / jnp.maximum(jnp.sum(ab * ab, -1), 1e-300), 0.0, 1.0)
+    return jnp.linalg.norm(p - a - t[..., None] * ab, axis=-1)
+
+
+def point_triangle_distance(p, a, b, c):
+    """The distance from points to triangles (broadcast over leading axes).
+
+    Arguments:
+        p, a, b, c: ``(..., 3)`` the points and the triangles' corners.
+
+    Returns:
+        ``(...)`` the Euclidean distance from ``p`` to the closest point of the triangle
+        (its interior, an edge or a corner).
+    """
+    bary = _barycentric(p, a, b, c)
+    inside = jnp.all(bary >= 0, axis=-1)
+    normal = jnp.cross(b - a, c - a)
+    plane = jnp.abs(jnp.sum((p - a) * normal, -1)) / jnp.linalg.norm(normal, axis=-1)
+    edges = jnp.minimum(jnp.minimum(_segment_distance(p, a, b), _segment_distance(p, b, c)),
+                        _segment_distance(p, c, a))
+    return jnp.where(inside, plane, edges)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Touch(PairRows):
+    """Contact with dry friction between the surfaces of two soft bodies of a scene.
+
+    Arguments:
+        first, second: the two bodies' names (``SoftBody(..., name=...)``), distinct.
+        mu_s: static friction coefficient (>= 0).
+        mu_k: kinetic friction coefficient (``0 <= mu_k <= mu_s``; default ``mu_s``).
+        restitution: coefficient of restitution in [0, 1] (0: the bodies stay together
+            after an impact).
+        thickness: the contact distance, m (> 0): a vertex rests this far above the
+            other surface.
+
+    The friction coefficients, restitution and thickness are the generator's parameters
+    (``params.rows[i]``, a dict with those keys): differentiable.
+
+    Raises:
+        SceneError: a name that is not a string, the same body twice, bad coefficients.
+    """
+
+    first: str
+    second: str
+    mu_s: float = 0.5
+    mu_k: float | None = None
+    restitution: float = 0.0
+    thickness: float = 1e-3
+    # bound to a scene by bind(): the surface vertices of both bodies (the first's, then
+    # the second's), and the triangles each set meets (the other body's surface)
+    _vertices: tuple | None = dataclasses.field(default=None, repr=False)
+    _triangles: tuple | None = dataclasses.field(default=None, repr=False)
+
+    def __post_init__(self):
+        for name in (self.first, self.second):
+            if not isinstance(name, str) or not name:
+                raise SceneError(f"Touch takes two body names (strings), got {name!r}")
+        if self.first == self.second:
+            raise SceneError(f"Touch({self.first!r}, {self.second!r}) names one body twice: contact within a body "
+                             "(self-contact) is not supported yet; name two bodies")
+        mu_k = self.mu_s if self.mu_k is None else self.mu_k
+        object.__setattr__(self, "mu_k", mu_k)
+        self.check(self.init_params())
+
+    def init_params(self):
+        return {"mu_s": jnp.asarray(float(self.mu_s)), "mu_k": jnp.asarray(float(self.mu_k)),
+                "restitution": jnp.asarray(float(self.restitution)), "thickness": jnp.asarray(float(self.thickness))}
+
+    def check(self, params) -> None:
+        try:
+            values = {k: params[k] for k in ("mu_s", "mu_k", "restitution", "thickness")}
+        except (KeyError, TypeError):
+            raise SceneError(f"Touch parameters are a dict with keys mu_s, mu_k, restitution, thickness; got "
+                             f"{params!r}") from None
+        if any(isinstance(v, jax.core.Tracer) for v in values.values()):
+            return
+        mu_s, mu_k, e, thickness = (float(np.asarray(values[k])) for k in ("mu_s", "mu_k", "restitution",
+                                                                           "thickness"))
+        if not (0 <= mu_k <= mu_s):
+            raise SceneError(f"Touch({self.first!r}, {self.second!r}): friction needs 0 <= mu_k <= mu_s, got "
+                             f"mu_s={mu_s}, mu_k={mu_k}")
+        if not 0 <= e <= 1:
+            raise SceneError(f"Touch({self.first!r}, {self.second!r}): restitution must lie in [0, 1], got {e}")
+        if not thickness > 0:
+            raise SceneError(f"Touch({self.first!r}, {self.second!r}): thickness must be a distance > 0 (m), got "
+                             f"{thickness}")
+
+    def bind(self, mesh, parts) -> "Touch":
+        by_name = {part.name: part for part in parts}
+        for name in (self.first, self.second):
+            if name not in by_name:
+                raise SceneError(f"Touch names body {name!r}, which is not in the scene; its bodies are "
+                                 f"{sorted(str(p.name) for p in parts)}")
+            if by_name[name].rigid is not None:
+                raise SceneError(f"Touch({self.first!r}, {self.second!r}): {name!r} is a rigid body; contact between "
+                                 "bodies is for soft bodies only so far (rigid bodies touch obstacles)")
+        faces = [np.asarray(mesh.regions[name].faces, np.int64) for name in (self.first, self.second)]
+        # the finer surface's vertices meet the coarser one's triangles at the thickness;
+        # the coarser one's vertices meet the finer one's triangles at half of it
+        spacing = [np.mean(np.linalg.norm(mesh.points[f] - mesh.points[np.roll(f, 1, axis=1)], axis=-1))
+                   for f in faces]
+        if spacing[1] < spacing[0]:
+            faces = faces[::-1]
+        return dataclasses.replace(self, _vertices=tuple(np.unique(f) for f in faces),
+                                   _triangles=(faces[1], faces[0]))
+
+    @property
+    def size(self) -> int:
+        return 0 if self._vertices is None else sum(len(v) for v in self._vertices)
+
+    def _bound(self):
+        if self._vertices is None:
+            raise SceneError("Touch is used before build bound it to a scene: pass it in build(rows=[...])")
+        return self._vertices, self._triangles
+
+    def select(self, x_start, x_end, params):
+        """Per surface vertex, the nearest triangle of the other body at ``x_end`` and
+        whether it is within reach (see the module docstring).
+
+        Returns:
+            ``(triangles (P, 3) int, valid (P,) bool)``.
+        """
+        picks, valid = [], []
+        motion = jnp.linalg.norm(x_end - x_start, axis=-1)
+        for verts, faces in zip(*self._bound()):
+            p, tri = x_end[verts][:, None, :], x_end[faces]  # (P, 1, 3), (T, 3, 3)
+            a, b, c = tri[None, :, 0], tri[None, :, 1], tri[None, :, 2]
+            normal = jnp.cross(b - a, c - a)
+            plane = jnp.abs(jnp.sum((p - a) * normal, -1)) / jnp.linalg.norm(normal, axis=-1)
+            over = jnp.all(_barycentric(p, a, b, c) >= -_INSIDE, axis=-1)  # p lies over the triangle
+            dist = jnp.where(over, plane, jnp.inf)  # (P, T)
+            nearest = jnp.argmin(dist, axis=1)
+            chosen = jnp.asarray(faces)[nearest]  # (P, 3)
+            reach = params["thickness"] + 2.0 * (motion[verts] + jnp.max(motion[chosen], axis=1)) + 1e-9
+            picks.append(chosen)
+            valid.append(jnp.min(dist, axis=1) <= reach)
+        return jax.lax.stop_gradient((jnp.concatenate(picks), jnp.concatenate(valid)))
+
+    def frame(self, x, selection, params) -> PairFrame:
+        vertices, _ = self._bound()
+        reach = np.repeat([1.0, 0.5], [len(v) for v in vertices])  # of the thickness, per pass
+        vertices = np.concatenate(vertices)
+        triangles, valid = selection
+        p, a, b, c = x[vertices], x[triangles[:, 0]], x[triangles[:, 1]], x[triangles[:, 2]]
+        normal = jnp.cross(b - a, c - a)
+        normal = normal / jnp.linalg.norm(normal, axis=-1, keepdims=True)
+        bary = jnp.clip(_barycentric(p, a, b, c), 0.0, 1.0)
+        bary = bary / jnp.sum(bary, axis=-1, keepdims=True)
+        phi = jnp.where(valid, jnp.sum((p - a) * normal, -1) - params["thickness"] * reach, jnp.inf)
+        m = len(vertices)
+        ones = jnp.ones(m)
+        return PairFrame(
+            vertices=jnp.concatenate([jnp.asarray(vertices)[:, None], triangles], axis=1),
+            weights=jnp.concatenate([ones[:, None], -bary], axis=1),
+            phi=phi, normal=normal,
+            mu_s=params["mu_s"] * ones, mu_k=params["mu_k"] * ones, restitution=params["restitution"] * ones)

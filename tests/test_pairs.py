@@ -1,0 +1,111 @@
+"""Bodies touching bodies (softbody.pairs.Touch): a soft block resting on and sliding over a
+soft slab held at its base, their gradients against central differences, and the refusals."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from softbody.active_set import ActiveSet
+from softbody.contact import Contact
+from softbody.material import Material
+from softbody.meshing.grid import grid_box
+from softbody.model import Options, SceneError, build, initial_state
+from softbody.pairs import Touch
+from softbody.rigid import RigidBody
+from softbody.scene import SoftBody
+from softbody.simulate import rollout
+
+DT, G, THICKNESS, MU = 0.01, 9.81, 1e-3, 0.3
+SLAB = grid_box((0.1, 0.04, 0.01), (10, 4, 1), origin=(-0.03, -0.02, 0.0))
+# the block's base starts one contact thickness above the slab's top
+BLOCK = grid_box((0.02, 0.02, 0.01), (2, 2, 1), origin=(-0.01, -0.01, 0.01 + THICKNESS))
+N_SLAB = SLAB.n_vertices
+
+
+def _scene(mu_k=MU, options=Options(dt=DT, tol=1e-10, max_iter=3000), **bodies):
+    material = Material(E=1e6, nu=0.3, density=1000.0)
+    return build([bodies.get("slab", SoftBody(SLAB, material, fixed="zmin", name="slab")),
+                  bodies.get("block", SoftBody(BLOCK, material, name="block"))],
+                 rows=[Touch("block", "slab", mu_s=MU, mu_k=mu_k, thickness=THICKNESS)], options=options)
+
+
+def _launched(model, v0):
+    state = initial_state(model)
+    return eqx.tree_at(lambda s: s.v, state, state.v.at[N_SLAB:, 0].set(v0))
+
+
+def _row_gaps(model, params, x):
+    """The smallest gap of the pair rows at the end of each step (rows chosen as a step does)."""
+    generator, p = model.rows[0], params.rows[0]
+    return np.array([float(jnp.min(generator.frame(x[k], generator.select(x[k - 1], x[k], p), p).phi))
+                     for k in range(1, len(x))])
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return _scene()
+
+
+def test_block_rests_on_slab(scene):
+    model, params = scene
+    traj = rollout(model, params, initial_state(model), n_steps=30)  # throws unless every step converged
+    x = np.asarray(traj.x)
+    gaps = _row_gaps(model, params, traj.x)
+    edge = 0.01
+    assert gaps.min() > -0.01 * edge  # penetration below 1% of the block's edge
+    assert abs(gaps[-1]) < 1e-8  # resting on its rows: the gap closed at the thickness
+    centre = x[:, N_SLAB:].mean(axis=1)
+    assert np.abs(centre[20:] - centre[20]).max() < 1e-4  # drift below 0.1 mm over the last 0.1 s
+    # the slab carries the block's weight: its base deflects by less than the thickness
+    assert x[:, N_SLAB:, 2].min() > 0.01
+
+
+def test_sliding_block_decelerates_at_mu_k_g(scene):
+    model, params = scene
+    v0 = 0.3  # stops after ~10 steps: the sliding steps lose mu_k g h each
+    traj = rollout(model, params, _launched(model, v0), n_steps=7)
+    vx = np.diff(np.asarray(traj.x)[:, N_SLAB:, 0].mean(axis=1)) / DT
+    decrements = -np.diff(np.concatenate([[v0], vx]))
+    # implicit Euler with Coulomb friction: each sliding step takes mu_k g h off the speed
+    # (the first also settles the block on the slab's compliance)
+    np.testing.assert_allclose(decrements[1:], MU * G * DT, rtol=0.01)
+    assert abs(_row_gaps(model, params, traj.x)).max() < 1e-8
+
+
+@pytest.mark.slow
+def test_sliding_gradients_match_central_differences():
+    """d(block's final x)/d(mu_k, v0, E) in sliding, reverse mode, against central differences."""
+    model, params = _scene(mu_k=0.25)
+
+    def final_x(mu_k, v0, E):
+        p = eqx.tree_at(lambda p: (p.rows[0]["mu_k"], p.E), params, (mu_k, params.E.at[1].set(E)))
+        traj = rollout(model, p, _launched(model, v0), n_steps=3)
+        return jnp.mean(traj.x[-1, N_SLAB:, 0])
+
+    at = (jnp.asarray(0.25), jnp.asarray(0.3), jnp.asarray(1e6))
+    grads = jax.grad(final_x, argnums=(0, 1, 2))(*at)
+    for i, (g, eps) in enumerate(zip(grads, (1e-4, 1e-4, 1e2))):
+        plus = [a + eps * (j == i) for j, a in enumerate(at)]
+        minus = [a - eps * (j == i) for j, a in enumerate(at)]
+        fd = (final_x(*plus) - final_x(*minus)) / (2 * eps)
+        assert abs(float(g) - float(fd)) <= 1e-4 * abs(float(fd)) + 1e-12, (i, float(g), float(fd))
+
+
+def test_refusals_before_compiling():
+    material = Material(E=1e5)
+    slab, block = SoftBody(SLAB, material, name="slab"), SoftBody(BLOCK, material, name="block")
+    with pytest.raises(SceneError, match="'lid', which is not in the scene"):
+        build([slab, block], rows=[Touch("block", "lid")])
+    with pytest.raises(SceneError, match="thickness must be a distance > 0"):
+        Touch("block", "slab", thickness=0.0)
+    with pytest.raises(SceneError, match="self-contact"):
+        Touch("block", "block")
+    with pytest.raises(SceneError, match="mu_k <= mu_s"):
+        Touch("block", "slab", mu_s=0.2, mu_k=0.3)
+    box = RigidBody((BLOCK.points, BLOCK.surface), density=500.0, name="box")
+    with pytest.raises(SceneError, match="'box' is a rigid body"):
+        build([slab, box], rows=[Touch("box", "slab")])
+    with pytest.raises(SceneError, match="pair contact"):
+        build([slab, block], rows=[Touch("block", "slab")], options=Options(contact=Contact(active_set=ActiveSet())))
