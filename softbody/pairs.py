@@ -31,7 +31,9 @@ Limits of this version (refused by :func:`softbody.model.build` or by :class:`To
 soft bodies only (rigid bodies and skeletons step in reduced coordinates, which do not
 carry pair rows yet), two distinct bodies (no self-contact), vertex-triangle rows only
 (no edge-edge rows: a sharp edge crossing another body's edge between vertices is not
-seen), and no check of tunnelling through a thin body within one step.
+seen), no check of tunnelling through a thin body within one step, and
+:func:`softbody.simulate.contact_forces` does not report pair rows yet (it refuses such
+scenes).
 """
 
 from __future__ import annotations
@@ -45,7 +47,7 @@ import numpy as np
 from softbody._interfaces import PairFrame, PairRows
 from softbody._types import SceneError
 
-__all__ = ["Touch", "point_triangle_distance"]
+__all__ = ["Touch"]
 
 # a vertex lies over a triangle where its projection's barycentric coordinates are all
 # >= -_INSIDE (a sliver of slack: a vertex over a shared edge lies over both triangles)
@@ -62,32 +64,6 @@ def _barycentric(p, a, b, c):
     v = (d11 * d20 - d01 * d21) / denom
     w = (d00 * d21 - d01 * d20) / denom
     return jnp.stack([1.0 - v - w, v, w], axis=-1)
-
-
-def _segment_distance(p, a, b):
-    """Distance from ``p`` to the segment ``ab`` (each ``(..., 3)``)."""
-    ab = b - a
-    t = jnp.clip(jnp.sum((p - a) * ab, -1) / jnp.maximum(jnp.sum(ab * ab, -1), 1e-300), 0.0, 1.0)
-    return jnp.linalg.norm(p - a - t[..., None] * ab, axis=-1)
-
-
-def point_triangle_distance(p, a, b, c):
-    """The distance from points to triangles (broadcast over leading axes).
-
-    Arguments:
-        p, a, b, c: ``(..., 3)`` the points and the triangles' corners.
-
-    Returns:
-        ``(...)`` the Euclidean distance from ``p`` to the closest point of the triangle
-        (its interior, an edge or a corner).
-    """
-    bary = _barycentric(p, a, b, c)
-    inside = jnp.all(bary >= 0, axis=-1)
-    normal = jnp.cross(b - a, c - a)
-    plane = jnp.abs(jnp.sum((p - a) * normal, -1)) / jnp.linalg.norm(normal, axis=-1)
-    edges = jnp.minimum(jnp.minimum(_segment_distance(p, a, b), _segment_distance(p, b, c)),
-                        _segment_distance(p, c, a))
-    return jnp.where(inside, plane, edges)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

@@ -362,10 +362,14 @@ def contact_forces(model: Model, params: Params, traj: Trajectory, controls=None
         :data:`softbody.contact.CONTACT_STATES` (0: none, 1: stick, 2: slide).
 
     Raises:
-        SceneError: the scene has no contact, or shapes that do not fit.
+        SceneError: the scene has no contact, has rows between bodies (not reported yet),
+            or shapes that do not fit.
     """
     if model.step.contact is None:
         raise SceneError("contact_forces needs a scene with obstacles or other contact rows; this one has none")
+    if "pair contact" in model.features:
+        raise SceneError("contact_forces does not report the rows between bodies (softbody.pairs.Touch) yet; "
+                         "read the contact forces of a scene without them, or the positions of this one")
     n_steps = traj.x.shape[0] - 1
     controls, forces, n_steps = _check_controls(model, controls, forces, n_steps)
     return _contact_forces(model, params, traj.x, traj.v, controls, forces, jnp.asarray(t0, jnp.float64))

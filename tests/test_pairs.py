@@ -15,7 +15,7 @@ from softbody.model import Options, SceneError, build, initial_state
 from softbody.pairs import Touch
 from softbody.rigid import RigidBody
 from softbody.scene import SoftBody
-from softbody.simulate import rollout
+from softbody.simulate import contact_forces, rollout
 
 DT, G, THICKNESS, MU = 0.01, 9.81, 1e-3, 0.3
 SLAB = grid_box((0.1, 0.04, 0.01), (10, 4, 1), origin=(-0.03, -0.02, 0.0))
@@ -72,6 +72,8 @@ def test_sliding_block_decelerates_at_mu_k_g(scene):
     # (the first also settles the block on the slab's compliance)
     np.testing.assert_allclose(decrements[1:], MU * G * DT, rtol=0.01)
     assert abs(_row_gaps(model, params, traj.x)).max() < 1e-8
+    with pytest.raises(SceneError, match="does not report the rows between bodies"):
+        contact_forces(model, params, traj)
 
 
 @pytest.mark.slow
