@@ -549,7 +549,31 @@ class Contact:
         depth = jnp.maximum(jnp.sum(force * normal, axis=-1), 0.0) / weight
         sliding = slip_t > jnp.maximum(0.5 * (mu_s - mu_k), 1e-6) * depth
         state = jnp.where(contact, jnp.where(sliding, 2, 1), 0).astype(jnp.int8)
+        pairs = _Pairs.select(problem, x)
+        if pairs.size:
+            force, state = self._report_pairs(problem, pairs, x, g, p, force, state)
         return force, state
+
+    def _report_pairs(self, problem: StepProblem, pairs: _Pairs, x, g, p, force, state):
+        """:meth:`report` on the vertices of the pair rows: a row acts where its gap is closed
+        (within ``margin``) and the force on its touching vertex pushes along its normal;
+        the force on each vertex of an acting row is ``grad Phi`` there (the sum of the
+        rows' forces and reactions on it), and the row slides where its relative slip
+        exceeds the margin between the cones (as for the vertex rows, with the row's
+        compliance ``W = sum_a w_a^2 / P_a``)."""
+        n = x.shape[0]
+        frame = pairs.frame(x)
+        push = jnp.sum(g[frame.vertices[:, 0]] * frame.normal, axis=-1)
+        acting = (frame.phi <= self.margin) & (push > 0)
+        W = jnp.sum(frame.weights**2 / p[frame.vertices, 0], axis=1)
+        slip = norm(_tangential(jnp.sum(frame.weights[:, :, None] * (x - problem.x_n)[frame.vertices], axis=1),
+                                frame.normal))
+        sliding = slip > jnp.maximum(0.5 * (frame.mu_s - frame.mu_k), 1e-6) * push * W
+        code = jnp.where(acting, jnp.where(sliding, 2, 1), 0).astype(jnp.int8)
+        on = (frame.weights != 0) & acting[:, None]  # (m, 4): the vertices each acting row moves
+        row_state = jnp.zeros(n, jnp.int8).at[frame.vertices.ravel()].max(jnp.where(on, code[:, None], 0).ravel())
+        touched = row_state > 0
+        return jnp.where(touched[:, None], g, force), jnp.maximum(state, row_state)
 
     def _law(self, problem: StepProblem):
         """The per-vertex contact step on some vertices, as :class:`~softbody.active_set.ActiveSet` takes it."""

@@ -31,9 +31,7 @@ Limits of this version (refused by :func:`softbody.model.build` or by :class:`To
 soft bodies only (rigid bodies and skeletons step in reduced coordinates, which do not
 carry pair rows yet), two distinct bodies (no self-contact), vertex-triangle rows only
 (no edge-edge rows: a sharp edge crossing another body's edge between vertices is not
-seen), no check of tunnelling through a thin body within one step, and
-:func:`softbody.simulate.contact_forces` does not report pair rows yet (it refuses such
-scenes).
+seen), and no check of tunnelling through a thin body within one step.
 """
 
 from __future__ import annotations

@@ -343,7 +343,7 @@ def contact_forces(model: Model, params: Params, traj: Trajectory, controls=None
     """The contact forces and contact states of every step of a trajectory.
 
     Each step's solution is a fixed point of the contact iteration, at which the force the
-    obstacles exert on a vertex is the step objective's gradient there (each step rebuilt
+    contact rows exert on a vertex is the step objective's gradient there (each step rebuilt
     as the scene's integrator built it, ``starts``)
     (:meth:`softbody.contact.Contact.report`); the states are the contact step's decision
     at the solution. Computed from the trajectory (one objective evaluation per step, all
@@ -358,18 +358,15 @@ def contact_forces(model: Model, params: Params, traj: Trajectory, controls=None
 
     Returns:
         ``(force (T, n, 3), state (T, n))``: at the end of each step, the force on each
-        vertex from the obstacles (N; zero off contact) and its int8 state, a code into
-        :data:`softbody.contact.CONTACT_STATES` (0: none, 1: stick, 2: slide).
+        vertex from the contact rows (obstacles and other bodies; N; zero off contact) and
+        its int8 state, a code into :data:`softbody.contact.CONTACT_STATES` (0: none, 1:
+        stick, 2: slide).
 
     Raises:
-        SceneError: the scene has no contact, has rows between bodies (not reported yet),
-            or shapes that do not fit.
+        SceneError: the scene has no contact, or shapes that do not fit.
     """
     if model.step.contact is None:
         raise SceneError("contact_forces needs a scene with obstacles or other contact rows; this one has none")
-    if "pair contact" in model.features:
-        raise SceneError("contact_forces does not report the rows between bodies (softbody.pairs.Touch) yet; "
-                         "read the contact forces of a scene without them, or the positions of this one")
     n_steps = traj.x.shape[0] - 1
     controls, forces, n_steps = _check_controls(model, controls, forces, n_steps)
     return _contact_forces(model, params, traj.x, traj.v, controls, forces, jnp.asarray(t0, jnp.float64))

@@ -11,7 +11,7 @@ from softbody.active_set import ActiveSet
 from softbody.contact import Contact
 from softbody.material import Material
 from softbody.meshing.grid import grid_box
-from softbody.model import Options, SceneError, build, initial_state
+from softbody.model import Options, SceneError, build, initial_state, prepare
 from softbody.pairs import Touch
 from softbody.rigid import RigidBody
 from softbody.scene import SoftBody
@@ -56,6 +56,11 @@ def test_block_rests_on_slab(scene):
     edge = 0.01
     assert gaps.min() > -0.01 * edge  # penetration below 1% of the block's edge
     assert abs(gaps[-1]) < 1e-8  # resting on its rows: the gap closed at the thickness
+    force, state = (np.asarray(a) for a in contact_forces(model, params, traj))
+    # at rest the slab holds the block's weight: the rows' forces on the block sum to m g
+    mass = np.asarray(prepare(model, params).mass)[N_SLAB:].sum()
+    np.testing.assert_allclose(force[-1, N_SLAB:, 2].sum(), mass * G, rtol=1e-6)
+    assert (state[-1, N_SLAB:] == 1).sum() >= 4  # the base's rows stick
     centre = x[:, N_SLAB:].mean(axis=1)
     assert np.abs(centre[20:] - centre[20]).max() < 1e-4  # drift below 0.1 mm over the last 0.1 s
     # the slab carries the block's weight: its base deflects by less than the thickness
@@ -72,8 +77,15 @@ def test_sliding_block_decelerates_at_mu_k_g(scene):
     # (the first also settles the block on the slab's compliance)
     np.testing.assert_allclose(decrements[1:], MU * G * DT, rtol=0.01)
     assert abs(_row_gaps(model, params, traj.x)).max() < 1e-8
-    with pytest.raises(SceneError, match="does not report the rows between bodies"):
-        contact_forces(model, params, traj)
+    force, state = (np.asarray(a) for a in contact_forces(model, params, traj))
+    block = slice(N_SLAB, None)
+    # the block's base slides on every step; the slab's vertices under it carry the reactions
+    assert (state[:, block].max(axis=1) == 2).all() and not (state[:, block] == 1).any()
+    np.testing.assert_allclose(force[:, block].sum(axis=1), -force[:, :N_SLAB].sum(axis=1), rtol=1e-6, atol=1e-9)
+    # kinetic friction: the tangential force on the block is mu_k times the normal force
+    # (each row's is exactly; their normals follow the slab's surface, tilted ~1e-5 rad)
+    total = force[1:, block].sum(axis=1)
+    np.testing.assert_allclose(-total[:, 0], MU * total[:, 2], rtol=1e-4)
 
 
 @pytest.mark.slow

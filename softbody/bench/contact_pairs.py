@@ -1,0 +1,166 @@
+"""Bodies touching bodies (:class:`softbody.pairs.Touch`): physics checks and costs.
+
+Scenes (soft bodies, E = 1e6 Pa unless said, nu = 0.3, density 1e3 kg/m^3, contact
+thickness 1 mm, relative tolerance 1e-8):
+
+* ``rest``: a 2 cm soft cube (E = 1e5 Pa) on a 10 x 4 x 1 cm slab held at its base,
+  dt = 0.01 s, 2 s. Reported: the deepest penetration of a row below the contact
+  thickness over all steps (as a fraction of the cube's edge), the drift of the cube's
+  centre over the last second, iterations per step.
+* ``slide``: a 2 x 2 x 1 cm block launched at v0 = 0.3 m/s along the same slab (mu_s = 0.5,
+  mu_k = 0.3) until it stops, at dt = 0.01, 0.005, 0.0025 s. Reported: the stopping
+  distance against ``v0^2 / (2 g mu_k)`` and against the same block on a
+  :class:`~softbody.obstacles.Plane` obstacle at the slab's top (the same implicit-Euler
+  discretisation: its error is ``~ v0 h / 2``), iterations per step. And once with
+  mu_s = mu_k = 0.3 at dt = 0.01 s: whether every step converges (the step where the block
+  comes to rest is the hard one).
+
+``iterations_median`` and ``iterations_max`` are over every step of the scenes above (the
+mu_s = mu_k run apart); ``broad_phase_share`` is the time of choosing a step's rows
+(:meth:`~softbody.pairs.Touch.select`, brute force over the surfaces' vertex-triangle
+pairs) over the time of a step of the ``rest`` scene (medians, compile excluded).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+G, THICKNESS, V0 = 9.81, 1e-3, 0.3
+
+
+def _scene(block_mesh, E_block, mu_s, mu_k, dt, plane=False):
+    from softbody.material import Material
+    from softbody.meshing.grid import grid_box
+    from softbody.model import Options, build
+    from softbody.obstacles import Plane
+    from softbody.pairs import Touch
+    from softbody.scene import SoftBody
+
+    options = Options(dt=dt, tol=1e-8, max_iter=10000)
+    if plane:
+        return build(SoftBody(block_mesh, Material(E=E_block, nu=0.3, density=1000.0), name="block"),
+                     obstacles=[Plane(point=(0.0, 0.0, 0.01 + THICKNESS), mu_s=mu_s, mu_k=mu_k)], options=options)
+    slab = grid_box((0.1, 0.04, 0.01), (10, 4, 1), origin=(-0.03, -0.02, 0.0))
+    return build([SoftBody(slab, Material(E=1e6, nu=0.3, density=1000.0), fixed="zmin", name="slab"),
+                  SoftBody(block_mesh, Material(E=E_block, nu=0.3, density=1000.0), name="block")],
+                 rows=[Touch("block", "slab", mu_s=mu_s, mu_k=mu_k, thickness=THICKNESS)], options=options)
+
+
+def _launch(model, v0):
+    import equinox as eqx
+
+    from softbody.model import initial_state
+
+    state = initial_state(model)
+    block = model.body("block").vertices
+    return eqx.tree_at(lambda s: s.v, state, state.v.at[block[0]:block[1], 0].set(v0))
+
+
+def _row_gaps(model, params, x):
+    import jax.numpy as jnp
+
+    generator, p = model.rows[0], params.rows[0]
+    return np.array([float(jnp.min(generator.frame(x[k], generator.select(x[k - 1], x[k], p), p).phi))
+                     for k in range(1, len(x))])
+
+
+def _rest(quick: bool) -> dict:
+    import jax
+
+    from softbody.meshing.grid import grid_box
+    from softbody.model import initial_state
+    from softbody.simulate import rollout
+
+    edge = 0.02
+    cube = grid_box((edge, edge, edge), (2, 2, 2), origin=(-0.01, -0.01, 0.01 + THICKNESS))
+    model, params = _scene(cube, 1e5, 0.5, 0.4, 0.01)
+    n_steps = 50 if quick else 200
+    state = initial_state(model)
+    traj = rollout(model, params, state, n_steps=n_steps, throw=False)
+    times = []
+    for _ in range(3):
+        start = time.perf_counter()
+        jax.block_until_ready(rollout(model, params, state, n_steps=n_steps, throw=False).x)
+        times.append((time.perf_counter() - start) / n_steps)
+    x = np.asarray(traj.x)
+    gaps = _row_gaps(model, params, traj.x)
+    a, b = model.body("block").vertices
+    centre = x[:, a:b].mean(axis=1)
+    half = n_steps // 2
+    # the time of choosing one step's rows, at the last step's positions
+    generator, p = model.rows[0], params.rows[0]
+    select = jax.jit(lambda x0, x1: generator.select(x0, x1, p))
+    jax.block_until_ready(select(traj.x[-2], traj.x[-1]))
+    picks = []
+    for _ in range(20):
+        start = time.perf_counter()
+        jax.block_until_ready(select(traj.x[-2], traj.x[-1]))
+        picks.append(time.perf_counter() - start)
+    info = traj.info
+    return {"steps": n_steps, "converged": bool(np.all(np.asarray(info.converged))),
+            "penetration_over_edge": float(max(0.0, -gaps.min()) / edge),
+            "drift_last_half_m": float(np.abs(centre[half:] - centre[half]).max()),
+            "iterations": np.asarray(info.iterations).tolist(),
+            "step_s": float(np.median(times)), "select_s": float(np.median(picks))}
+
+
+def _slide(dt: float, mu_s: float, mu_k: float) -> dict:
+    from softbody.meshing.grid import grid_box
+    from softbody.simulate import rollout
+
+    block = grid_box((0.02, 0.02, 0.01), (2, 2, 1), origin=(-0.01, -0.01, 0.01 + THICKNESS))
+    out = {"dt": dt, "mu_s": mu_s, "mu_k": mu_k, "expected_m": V0**2 / (2 * G * mu_k)}
+    n_steps = int(round((V0 / (G * mu_k) + 0.05) / dt))
+    for plane in (False, True):
+        model, params = _scene(block, 1e6, mu_s, mu_k, dt, plane=plane)
+        traj = rollout(model, params, _launch(model, V0), n_steps=n_steps, throw=False)
+        a, b = model.body("block").vertices
+        centre = np.asarray(traj.x)[:, a:b, 0].mean(axis=1)
+        key = "plane" if plane else "pairs"
+        out[f"{key}_distance_m"] = float(centre[-1] - centre[0])
+        out[f"{key}_converged"] = bool(np.all(np.asarray(traj.info.converged)))
+        out[f"{key}_iterations"] = np.asarray(traj.info.iterations).tolist()
+    out["error_vs_expected"] = out["pairs_distance_m"] / out["expected_m"] - 1
+    out["error_vs_plane"] = out["pairs_distance_m"] / out["plane_distance_m"] - 1
+    return out
+
+
+def run(out: Path, quick: bool) -> dict:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rest = _rest(quick)
+    slides = [_slide(dt, 0.5, 0.3) for dt in ((0.01,) if quick else (0.01, 0.005, 0.0025))]
+    equal_cones = _slide(0.01, 0.3, 0.3)
+    iterations = np.concatenate([rest["iterations"], *[s["pairs_iterations"] for s in slides]])
+
+    fig, (left, right) = plt.subplots(1, 2, figsize=(10, 4))
+    dts = [s["dt"] for s in slides]
+    left.plot(dts, [s["pairs_distance_m"] * 100 for s in slides], "o-", label="block on slab (pair rows)")
+    left.plot(dts, [s["plane_distance_m"] * 100 for s in slides], "s--", label="block on a plane obstacle")
+    left.axhline(slides[0]["expected_m"] * 100, color="k", lw=0.8, label="v0^2 / (2 g mu_k)")
+    left.set(xlabel="dt (s)", ylabel="stopping distance (cm)", xscale="log", title="sliding block")
+    left.legend(fontsize=8)
+    right.plot(rest["iterations"], label="cube resting on slab")
+    right.plot(slides[0]["pairs_iterations"], label="block sliding, dt = 0.01 s")
+    right.set(xlabel="step", ylabel="iterations", yscale="log", title="contact iterations per step")
+    right.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "contact_pairs.png", dpi=120)
+    plt.close(fig)
+    return {
+        "iterations_median": float(np.median(iterations)),
+        "iterations_max": int(iterations.max()),
+        "broad_phase_share": rest["select_s"] / rest["step_s"],
+        "rest_penetration_over_edge": rest["penetration_over_edge"],
+        "rest_drift_m": rest["drift_last_half_m"],
+        "slide_error_vs_expected": [s["error_vs_expected"] for s in slides],
+        "slide_error_vs_plane": [s["error_vs_plane"] for s in slides],
+        "equal_cones_converged": equal_cones["pairs_converged"],
+        "rest": rest, "slide": slides, "slide_equal_cones": equal_cones,
+    }
