@@ -363,9 +363,14 @@ class PairRows:
         raise NotImplementedError
 
     def select(self, x_start, x_end, params):
-        """The rows of one step (a pytree of fixed shapes, not differentiated), chosen from
-        the positions ``x_start`` and ``x_end`` ``(n, 3)`` at the step's start and its
-        predicted end."""
+        """The rows of one step, chosen from the positions ``x_start`` and ``x_end``
+        ``(n, 3)`` at the step's start and its predicted end (not differentiated).
+
+        Returns:
+            ``(rows, overflow)``: ``rows`` a pytree of fixed shapes (what :meth:`frame`
+            reads), ``overflow`` a bool, true where the search for them overflowed a fixed
+            capacity (the step then ends with ``RESULTS.overflow``).
+        """
         raise NotImplementedError
 
     def frame(self, x, selection, params) -> PairFrame:

@@ -369,9 +369,12 @@ class RESULTS(enum.IntEnum):
       advanced past it).
     * ``inverted`` (3): the step ended with more inverted tets (``det F <= 0``) than the
       initial state had (``StepInfo.inverted`` holds the count).
+    * ``overflow`` (4): a contact search between bodies found more candidate pairs than
+      its fixed capacity holds (``StepInfo.overflow``): contacts may be missing from the
+      step. Rebuild with a larger capacity (``Touch(..., capacity=...)``).
 
     A step with several of these reports the first in the order inverted, nonfinite,
-    max_iterations (inverted tets usually cause the rest). Codes are plain integers:
+    overflow, max_iterations (inverted tets usually cause the rest). Codes are plain integers:
     ``traj.info.result == RESULTS.max_iterations`` works on the arrays.
     """
 
@@ -379,6 +382,7 @@ class RESULTS(enum.IntEnum):
     max_iterations = 1
     nonfinite = 2
     inverted = 3
+    overflow = 4
 
     @property
     def message(self) -> str:
@@ -386,11 +390,12 @@ class RESULTS(enum.IntEnum):
         return _RESULT_MESSAGES[self]
 
     @staticmethod
-    def of(*, finite, converged, inverted, inverted0) -> Array:
+    def of(*, finite, converged, inverted, inverted0, overflow=False) -> Array:
         """The int32 code of steps (elementwise): ``inverted`` where ``inverted > inverted0``,
-        else ``nonfinite`` where not ``finite``, else ``max_iterations`` where not
-        ``converged``, else ``success``."""
+        else ``nonfinite`` where not ``finite``, else ``overflow`` where a contact search
+        overflowed, else ``max_iterations`` where not ``converged``, else ``success``."""
         code = jnp.where(converged, int(RESULTS.success), int(RESULTS.max_iterations))
+        code = jnp.where(overflow, int(RESULTS.overflow), code)
         code = jnp.where(finite, code, int(RESULTS.nonfinite))
         return jnp.where(inverted > inverted0, int(RESULTS.inverted), code).astype(jnp.int32)
 
@@ -400,6 +405,7 @@ _RESULT_MESSAGES = {
     RESULTS.max_iterations: "the step stopped at the iteration cap (Options.max_iter) without meeting its tolerance",
     RESULTS.nonfinite: "the state or the force residual became non-finite (NaN/inf)",
     RESULTS.inverted: "the step ended with more inverted tets (det F <= 0) than the initial state had",
+    RESULTS.overflow: "a contact search between bodies overflowed its capacity: contacts may be missing",
 }
 
 
@@ -414,3 +420,4 @@ class StepInfo(eqx.Module):
     result: Array  # int32 RESULTS code: how the step ended
     fallback: Array  # bool: a contact step's fast iteration (ActiveSet) fell short and the proven
     #   splitting iteration finished the step (softbody.contact.Contact)
+    overflow: Array  # bool: a contact search between bodies overflowed its capacity (RESULTS.overflow)

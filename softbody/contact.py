@@ -187,6 +187,11 @@ class _Pairs(NamedTuple):
         frame = PairFrame(*(jnp.concatenate(column) for column in zip(*frames)))
         return frame._replace(phi=jnp.minimum(frame.phi, _FAR))
 
+    @property
+    def overflow(self):
+        """Whether some generator's search for its rows overflowed its capacity."""
+        return functools.reduce(jnp.logical_or, (selection[1] for selection in self.selection), jnp.asarray(False))
+
     def gap(self, x):
         """The smallest gap of the rows at ``x`` (``_FAR`` without rows)."""
         return jnp.min(self.frame(x).phi) if self.rows else jnp.asarray(_FAR, x.dtype)
@@ -417,7 +422,9 @@ class Contact:
         )
         sol, cache, selection = solve(*jax.lax.stop_gradient((x0, q0, *consts)))
         if pairs.size:  # the rows the solve ended with
-            iteration = self.map(problem, coordinates, pairs.chosen(selection))
+            pairs = pairs.chosen(selection)
+            iteration = self.map(problem, coordinates, pairs)
+            sol = sol._replace(overflow=pairs.overflow)
         fixed_point_map = iteration.apply
         if fast is None:
             position = lambda x, q: fixed_point_map(x, q)[0]  # noqa: E731

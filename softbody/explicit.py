@@ -35,7 +35,7 @@ from softbody.model import Model, Params, State, prepare
 from softbody._interfaces import Capabilities, Integrator
 from softbody._types import StepInfo
 from softbody.objective import accelerations, step_objective
-from softbody.simulate import Trajectory, _Messages, _check_controls, _raise_failure, integrate
+from softbody.simulate import _VARIANTS, Trajectory, _Messages, _check_controls, _raise_failure, integrate
 
 Array = jax.Array
 
@@ -69,14 +69,14 @@ class SymplecticEuler(Integrator):
         zero = jnp.asarray(0)
         info = StepInfo(iterations=zero, evaluations=jnp.asarray(1), residual=jnp.asarray(0.0),
                         converged=jnp.asarray(True), inverted=zero, result=jnp.asarray(0, jnp.int32),
-                        fallback=jnp.asarray(False))
+                        fallback=jnp.asarray(False), overflow=jnp.asarray(False))
         return State(x=x, v=v, rot=q, t=state.t + self.dt), memory, info
 
     def templates(self, model: Model, call: str) -> tuple[str, ...]:
         unstable = (f"step {{step}}: the explicit state became non-finite at dt = {model.options.dt:g} s; the step "
                     "exceeds the stability limit (softbody.explicit.critical_time_step gives it): reduce dt or use "
                     "the implicit softbody.simulate.rollout")
-        return (unstable,) * 5
+        return (unstable,) * len(_VARIANTS)  # one per failure branch
 
 
 @functools.partial(jax.jit, static_argnums=(0, 5))

@@ -293,8 +293,9 @@ def solve_step(model: Model, prep: Prepared, state: State, activation, force, *,
     finite = jnp.all(jnp.isfinite(sol.x)) & jnp.isfinite(sol.gnorm)
     info = StepInfo(iterations=sol.iterations, evaluations=sol.evaluations,
                     residual=sol.gnorm / (scale + opts.atol / opts.tol), converged=converged, inverted=inverted,
-                    result=RESULTS.of(finite=finite, converged=converged, inverted=inverted, inverted0=inverted0),
-                    fallback=jnp.asarray(sol.fallback))
+                    result=RESULTS.of(finite=finite, converged=converged, inverted=inverted, inverted0=inverted0,
+                                      overflow=sol.overflow),
+                    fallback=jnp.asarray(sol.fallback), overflow=jnp.asarray(sol.overflow))
     return sol, info
 
 

@@ -15,17 +15,21 @@ distributed by the barycentric coordinates of ``p``'s projection (clamped to the
 triangle): the row's weights are ``(1, -u, -v, -w)``.
 
 **Which rows.** Once per step (:meth:`Touch.select`, not differentiated: a step's
-contact set is fixed), each surface vertex is paired with the nearest triangle of the
-other body that it lies over (its projection on the triangle's plane falls inside the
-triangle: a vertex below a box's bottom edge is not paired with the box's side, whose
-plane passes through it) at the step's predicted end, and the row is kept where that
+contact set is fixed), each surface vertex is paired with the triangle of the other body
+nearest to it at the step's predicted end (the distance to the triangle's closest point:
+its interior, an edge or a corner; where several are as near, their common edge or corner
+being the nearest, the one the vertex lies most squarely over, so that a vertex below a
+box's bottom edge meets the bottom and not the side whose plane passes through it, and a
+vertex just past a box's top edge still meets the top), and the row is kept where that
 distance is below the reach of the step's motion (the thickness plus twice the largest motion of
 the vertex and the triangle's vertices from the step's start to its predicted end), so a
 row exists wherever the step could bring the two together. The gap is then a smooth
 function of the positions over the step: the triangle's plane, extended beyond its edges
 (a vertex sliding off one triangle onto its neighbour in the same plane stays supported
-for the step). The choice is brute force over the surfaces' vertex-triangle pairs, ``P x
-T`` per step: fine for scenes of a few thousand surface triangles.
+for the step). The candidates come from a broad phase over the step's swept boxes
+(:mod:`softbody.broad_phase`: a hashed grid, cost linear in the surfaces' sizes) with a
+fixed capacity; a step that overflows it ends with ``RESULTS.overflow``, never with
+contacts silently lost.
 
 Limits of this version (refused by :func:`softbody.model.build` or by :class:`Touch`):
 soft bodies only (rigid bodies and skeletons step in reduced coordinates, which do not
@@ -42,14 +46,41 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from softbody import broad_phase
 from softbody._interfaces import PairFrame, PairRows
 from softbody._types import SceneError
 
 __all__ = ["Touch"]
 
-# a vertex lies over a triangle where its projection's barycentric coordinates are all
-# >= -_INSIDE (a sliver of slack: a vertex over a shared edge lies over both triangles)
-_INSIDE = 1e-6
+# the default capacity of the broad phase per pass: candidate triangles per surface vertex
+_CANDIDATES_PER_VERTEX = 64
+
+
+def _closest(p, a, b, c):
+    """Barycentric coordinates ``(..., 3)`` of the point of the triangle ``(a, b, c)`` closest
+    to ``p`` (each ``(..., 3)``): its interior, an edge or a corner (Ericson's regions)."""
+    ab, ac, ap = b - a, c - a, p - a
+    d1, d2 = jnp.sum(ab * ap, -1), jnp.sum(ac * ap, -1)
+    bp, cp = p - b, p - c
+    d3, d4 = jnp.sum(ab * bp, -1), jnp.sum(ac * bp, -1)
+    d5, d6 = jnp.sum(ab * cp, -1), jnp.sum(ac * cp, -1)
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+
+    def ratio(num, den):
+        return num / jnp.where(den == 0, 1.0, den)
+
+    one, zero = jnp.ones_like(d1), jnp.zeros_like(d1)
+    inside = ratio(1.0, va + vb + vc)
+    out = jnp.stack([1.0 - (vb + vc) * inside, vb * inside, vc * inside], -1)  # the interior
+    t = ratio(d4 - d3, (d4 - d3) + (d5 - d6))  # edge bc
+    out = jnp.where(((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0))[..., None], jnp.stack([zero, 1 - t, t], -1), out)
+    t = ratio(d2, d2 - d6)  # edge ac
+    out = jnp.where(((vb <= 0) & (d2 >= 0) & (d6 <= 0))[..., None], jnp.stack([1 - t, zero, t], -1), out)
+    t = ratio(d1, d1 - d3)  # edge ab
+    out = jnp.where(((vc <= 0) & (d1 >= 0) & (d3 <= 0))[..., None], jnp.stack([1 - t, t, zero], -1), out)
+    out = jnp.where(((d6 >= 0) & (d5 <= d6))[..., None], jnp.stack([zero, zero, one], -1), out)  # corner c
+    out = jnp.where(((d3 >= 0) & (d4 <= d3))[..., None], jnp.stack([zero, one, zero], -1), out)  # corner b
+    return jnp.where(((d1 <= 0) & (d2 <= 0))[..., None], jnp.stack([one, zero, zero], -1), out)  # corner a
 
 
 def _barycentric(p, a, b, c):
@@ -76,6 +107,10 @@ class Touch(PairRows):
             after an impact).
         thickness: the contact distance, m (> 0): a vertex rests this far above the
             other surface.
+        capacity: the most candidate (vertex, triangle) pairs the broad phase
+            (:func:`softbody.broad_phase.candidates`) holds per step and direction (static;
+            default 64 per surface vertex; the box tests' budget is 4 times it). A step that finds more ends with the result
+            code ``RESULTS.overflow`` (a rollout raises, naming this fix).
 
     The friction coefficients, restitution and thickness are the generator's parameters
     (``params.rows[i]``, a dict with those keys): differentiable.
@@ -90,6 +125,7 @@ class Touch(PairRows):
     mu_k: float | None = None
     restitution: float = 0.0
     thickness: float = 1e-3
+    capacity: int | None = None
     # bound to a scene by bind(): the surface vertices of both bodies (the first's, then
     # the second's), and the triangles each set meets (the other body's surface)
     _vertices: tuple | None = dataclasses.field(default=None, repr=False)
@@ -99,6 +135,9 @@ class Touch(PairRows):
         for name in (self.first, self.second):
             if not isinstance(name, str) or not name:
                 raise SceneError(f"Touch takes two body names (strings), got {name!r}")
+        if self.capacity is not None and (int(self.capacity) != self.capacity or self.capacity < 1):
+            raise SceneError(f"Touch.capacity must be a whole number of candidate pairs >= 1 or None, got "
+                             f"{self.capacity!r}")
         if self.first == self.second:
             raise SceneError(f"Touch({self.first!r}, {self.second!r}) names one body twice: contact within a body "
                              "(self-contact) is not supported yet; name two bodies")
@@ -158,33 +197,51 @@ class Touch(PairRows):
         return self._vertices, self._triangles
 
     def select(self, x_start, x_end, params):
-        """Per surface vertex, the nearest triangle of the other body at ``x_end`` and
-        whether it is within reach (see the module docstring).
+        """Per surface vertex, the nearest triangle of the other body that it lies over at
+        ``x_end``, among the broad phase's candidates, and whether it is within reach (see
+        the module docstring).
 
         Returns:
-            ``(triangles (P, 3) int, valid (P,) bool)``.
+            ``((triangles (P, 3) int, valid (P,) bool), overflow)``: ``overflow`` (bool) where
+            a pass found more candidates than its capacity (some rows may be missing).
         """
-        picks, valid = [], []
+        picks, valid, overflow = [], [], jnp.asarray(False)
         motion = jnp.linalg.norm(x_end - x_start, axis=-1)
+        # boxes grow by half the largest reach, so a pair within reach always overlaps
+        margin = 0.5 * params["thickness"] + 2.0 * jnp.max(motion) + 1e-9
         for verts, faces in zip(*self._bound()):
-            p, tri = x_end[verts][:, None, :], x_end[faces]  # (P, 1, 3), (T, 3, 3)
-            a, b, c = tri[None, :, 0], tri[None, :, 1], tri[None, :, 2]
+            capacity = self.capacity or _CANDIDATES_PER_VERTEX * len(verts)
+            found = broad_phase.candidates(x_start, x_end, verts, faces, margin, capacity, work=4 * capacity,
+                                           exclude_incident=False)
+            local = np.zeros(x_end.shape[0], np.int32)
+            local[verts] = np.arange(len(verts))
+            row = jnp.asarray(local)[found.vertex]  # (C,) each candidate's vertex, among verts
+            p, tri = x_end[found.vertex], x_end[jnp.asarray(faces)[found.triangle]]  # (C, 3), (C, 3, 3)
+            a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
             normal = jnp.cross(b - a, c - a)
-            plane = jnp.abs(jnp.sum((p - a) * normal, -1)) / jnp.linalg.norm(normal, axis=-1)
-            over = jnp.all(_barycentric(p, a, b, c) >= -_INSIDE, axis=-1)  # p lies over the triangle
-            dist = jnp.where(over, plane, jnp.inf)  # (P, T)
-            nearest = jnp.argmin(dist, axis=1)
-            chosen = jnp.asarray(faces)[nearest]  # (P, 3)
+            normal = normal / jnp.linalg.norm(normal, axis=-1, keepdims=True)
+            away = p - jnp.sum(_closest(p, a, b, c)[:, :, None] * tri, axis=1)  # from the closest point
+            dist = jnp.linalg.norm(away, axis=-1)
+            # where several triangles are as near (their common edge or corner is nearest), the
+            # one that p lies most squarely over: a vertex just past a box's top edge meets the
+            # top, not the side whose plane passes through it
+            aligned = jnp.abs(jnp.sum(away * normal, -1)) / jnp.where(dist > 0, dist, 1.0)
+            score = jnp.where(found.valid, dist * (2.0 - jnp.where(dist > 0, aligned, 1.0)), jnp.inf)
+            best = jnp.full(len(verts), jnp.inf).at[row].min(score)
+            tie = found.valid & (score == best[row])
+            nearest = jnp.full(len(verts), len(faces)).at[row].min(jnp.where(tie, found.triangle, len(faces)))
+            chosen = jnp.asarray(faces)[jnp.where(nearest < len(faces), nearest, 0)]  # (P, 3)
             reach = params["thickness"] + 2.0 * (motion[verts] + jnp.max(motion[chosen], axis=1)) + 1e-9
             picks.append(chosen)
-            valid.append(jnp.min(dist, axis=1) <= reach)
-        return jax.lax.stop_gradient((jnp.concatenate(picks), jnp.concatenate(valid)))
+            valid.append(jnp.full(len(verts), jnp.inf).at[row].min(jnp.where(tie, dist, jnp.inf)) <= reach)
+            overflow = overflow | found.overflow
+        return jax.lax.stop_gradient(((jnp.concatenate(picks), jnp.concatenate(valid)), overflow))
 
     def frame(self, x, selection, params) -> PairFrame:
         vertices, _ = self._bound()
         reach = np.repeat([1.0, 0.5], [len(v) for v in vertices])  # of the thickness, per pass
         vertices = np.concatenate(vertices)
-        triangles, valid = selection
+        (triangles, valid), _ = selection
         p, a, b, c = x[vertices], x[triangles[:, 0]], x[triangles[:, 1]], x[triangles[:, 2]]
         normal = jnp.cross(b - a, c - a)
         normal = normal / jnp.linalg.norm(normal, axis=-1, keepdims=True)

@@ -376,7 +376,8 @@ def newton_rollout(model: Model, params: Params, state0: State, n_steps: int | N
     converged = jnp.ones(n_steps, bool)
     result = RESULTS.of(finite=converged, converged=converged, inverted=inverted, inverted0=count(state0.x[None])[0])
     info = StepInfo(iterations=iters, evaluations=evals, residual=residuals, converged=converged,
-                    inverted=inverted, result=result, fallback=jnp.zeros(n_steps, bool))
+                    inverted=inverted, result=result, fallback=jnp.zeros(n_steps, bool),
+                    overflow=jnp.zeros(n_steps, bool))
     return Trajectory(x=jnp.stack(xs), v=jnp.stack(vs), info=info)
 
 

@@ -9,7 +9,7 @@ and actuator energies and ``D`` the strain-rate damping; then ``v_{n+1} = (x_{n+
 The step stops when ``|grad Phi| <= tol |M s / h^2| + atol`` over the free degrees of
 freedom or after ``max_iter`` iterations, and reports its iteration count, residual and
 result code (:class:`~softbody._types.RESULTS`: success, max_iterations, nonfinite,
-inverted). :func:`rollout` and :func:`solve_static` raise :class:`SimulationError` for
+inverted, overflow). :func:`rollout` and :func:`solve_static` raise :class:`SimulationError` for
 any step that did not succeed unless called with ``throw=False``; then the codes are in
 ``info.result``. The message is the same whether the call is traced (under an outer
 ``jax.jit`` or ``jax.grad``, where ``equinox.branched_error_if`` raises it at run time)
@@ -67,7 +67,7 @@ Array = jax.Array
 
 class SimulationError(RuntimeError):
     """A step failed (:class:`~softbody._types.RESULTS`): it stopped at the iteration cap,
-    became non-finite or inverted tets. The message names the first failing step, what
+    became non-finite, inverted tets or overflowed a contact search. The message names the first failing step, what
     failed and the fix. Traced (under an outer ``jax.jit``/``jax.grad``) the same message
     is raised at run time by equinox instead: a ``jax.errors.JaxRuntimeError`` that
     contains it (an ``equinox.EquinoxRuntimeError`` under ``equinox.filter_jit``)."""
@@ -85,8 +85,14 @@ def _inverted(model: Model, prep: Prepared, x) -> Array:
 
 
 #: What a failure message can name, in the order of its branch: the iteration cap, the
-#: positions / velocities / force residual going non-finite, inverted tets.
-_VARIANTS = ("max_iterations", "positions", "velocities", "force residual", "inverted")
+#: positions / velocities / force residual going non-finite, inverted tets, an overflowing
+#: contact search.
+_VARIANTS = ("max_iterations", "positions", "velocities", "force residual", "inverted", "overflow")
+
+#: The message of a step whose contact search between bodies overflowed.
+_OVERFLOW = ("{where}: the contact search between bodies found more candidate pairs than its capacity holds, so "
+             "contacts may be missing; rebuild with a larger capacity, softbody.pairs.Touch(..., capacity=...) "
+             "(softbody.broad_phase.required_capacity measures what a configuration needs).")
 
 
 def _step_templates(model: Model, call: str = "rollout") -> tuple[str, ...]:
@@ -102,7 +108,7 @@ def _step_templates(model: Model, call: str = "rollout") -> tuple[str, ...]:
                  "positive definite, from a non-positive mass, stiffness or time step, shows here too.)")
     inverted = (f"step {{step}}: more tets inverted (det F <= 0) than in the initial state; {call}(..., "
                 f"throw=False) returns the counts in info.inverted. {_FIXES}.")
-    return (cap, *(nonfinite % what for what in _VARIANTS[1:4]), inverted)
+    return (cap, *(nonfinite % what for what in _VARIANTS[1:4]), inverted, _OVERFLOW.format(where="step {step}"))
 
 
 def _static_templates(model: Model) -> tuple[str, ...]:
@@ -115,7 +121,7 @@ def _static_templates(model: Model) -> tuple[str, ...]:
                  f"may exceed what the body can carry). {_FIXES}.")
     inverted = (f"the static solution has more inverted tets (det F <= 0) than x0; solve_static(..., "
                 f"throw=False) returns the count in info.inverted. {_FIXES}.")
-    return (cap, *(nonfinite % what for what in _VARIANTS[1:4]), inverted)
+    return (cap, *(nonfinite % what for what in _VARIANTS[1:4]), inverted, _OVERFLOW.format(where="the static solve"))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -144,7 +150,7 @@ def _first_failure(result, x_after, v_after):
     code = result[k]
     what = jnp.where(~jnp.all(jnp.isfinite(x_after[k])), 1, jnp.where(~jnp.all(jnp.isfinite(v_after[k])), 2, 3))
     variant = jnp.where(code == int(RESULTS.max_iterations), 0,
-                        jnp.where(code == int(RESULTS.nonfinite), what, 4))
+                        jnp.where(code == int(RESULTS.nonfinite), what, jnp.where(code == int(RESULTS.overflow), 5, 4)))
     return jnp.any(failed), variant * result.shape[0] + k
 
 
@@ -465,7 +471,8 @@ def integrate(integrator: Integrator, model: Model, params: Params, state0: Stat
         # A non-finite residual is a step that could not start (an overflowing load, say):
         # the positions it returns are finite but not a solution.
         finite = jnp.all(jnp.isfinite(new.x)) & jnp.all(jnp.isfinite(new.v)) & jnp.isfinite(info.residual)
-        result = RESULTS.of(finite=finite, converged=info.converged, inverted=info.inverted, inverted0=inverted0)
+        result = RESULTS.of(finite=finite, converged=info.converged, inverted=info.inverted, inverted0=inverted0,
+                            overflow=info.overflow)
         info = dataclasses.replace(info, result=jnp.where(bad, int(RESULTS.nonfinite), result).astype(jnp.int32))
         new, new_memory = jax.tree.map(lambda n, o: jnp.where(bad, o, n), (new, new_memory), (state, memory))
         return (new, new_memory, bad | ~finite), (new.x, new.v, info, a)

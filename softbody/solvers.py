@@ -83,6 +83,7 @@ class Solution(NamedTuple):
     evaluations: Array  # int: local steps (objective evaluations), line-search trials included
     gnorm: Array  # final |g|
     fallback: Array = False  # bool: a contact step's fast iteration fell short (see StepInfo.fallback)
+    overflow: Array = False  # bool: a contact search overflowed its capacity (see StepInfo.overflow)
 
 
 class NonlinearSolver:

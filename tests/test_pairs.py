@@ -15,7 +15,8 @@ from softbody.model import Options, SceneError, build, initial_state, prepare
 from softbody.pairs import Touch
 from softbody.rigid import RigidBody
 from softbody.scene import SoftBody
-from softbody.simulate import contact_forces, rollout
+from softbody.simulate import SimulationError, contact_forces, rollout
+from softbody._types import RESULTS
 
 DT, G, THICKNESS, MU = 0.01, 9.81, 1e-3, 0.3
 SLAB = grid_box((0.1, 0.04, 0.01), (10, 4, 1), origin=(-0.03, -0.02, 0.0))
@@ -24,11 +25,12 @@ BLOCK = grid_box((0.02, 0.02, 0.01), (2, 2, 1), origin=(-0.01, -0.01, 0.01 + THI
 N_SLAB = SLAB.n_vertices
 
 
-def _scene(mu_k=MU, options=Options(dt=DT, tol=1e-10, max_iter=3000), **bodies):
+def _scene(mu_k=MU, options=Options(dt=DT, tol=1e-10, max_iter=3000), capacity=None, **bodies):
     material = Material(E=1e6, nu=0.3, density=1000.0)
     return build([bodies.get("slab", SoftBody(SLAB, material, fixed="zmin", name="slab")),
                   bodies.get("block", SoftBody(BLOCK, material, name="block"))],
-                 rows=[Touch("block", "slab", mu_s=MU, mu_k=mu_k, thickness=THICKNESS)], options=options)
+                 rows=[Touch("block", "slab", mu_s=MU, mu_k=mu_k, thickness=THICKNESS, capacity=capacity)],
+                 options=options)
 
 
 def _launched(model, v0):
@@ -107,6 +109,14 @@ def test_sliding_gradients_match_central_differences():
         assert abs(float(g) - float(fd)) <= 1e-4 * abs(float(fd)) + 1e-12, (i, float(g), float(fd))
 
 
+def test_a_search_that_overflows_its_capacity_is_never_silent():
+    model, params = _scene(capacity=1)
+    traj = rollout(model, params, _launched(model, 0.3), n_steps=1, throw=False)
+    assert int(traj.info.result[0]) == RESULTS.overflow and bool(traj.info.overflow[0])
+    with pytest.raises(SimulationError, match=r"step 0: the contact search .*\.Touch\(\.\.\., capacity=\.\.\.\)"):
+        rollout(model, params, _launched(model, 0.3), n_steps=1)
+
+
 def test_refusals_before_compiling():
     material = Material(E=1e5)
     slab, block = SoftBody(SLAB, material, name="slab"), SoftBody(BLOCK, material, name="block")
@@ -116,6 +126,8 @@ def test_refusals_before_compiling():
         Touch("block", "slab", thickness=0.0)
     with pytest.raises(SceneError, match="self-contact"):
         Touch("block", "block")
+    with pytest.raises(SceneError, match="capacity must be a whole number"):
+        Touch("block", "slab", capacity=0)
     with pytest.raises(SceneError, match="mu_k <= mu_s"):
         Touch("block", "slab", mu_s=0.2, mu_k=0.3)
     box = RigidBody((BLOCK.points, BLOCK.surface), density=500.0, name="box")

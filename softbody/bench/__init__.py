@@ -29,7 +29,7 @@ BENCHMARKS = {
     "gradients": "implicit/unrolled backward cost, finite-difference check, memory against horizon",
     "pareto": "speed against accuracy of PD, Newton, diffrax and explicit Euler on a vibrating cantilever; stability map",
     "scaling": "wall time per simulated second against degrees of freedom and against scenes batched by jax.vmap",
-    "contact-pairs": "bodies touching bodies: a cube resting on a slab, a block sliding to rest (stopping distance against v0^2/(2 g mu_k) and a plane obstacle), iterations per step, share of choosing the rows",
+    "contact-pairs": "bodies touching bodies: a cube resting on a slab, a block sliding to rest (stopping distance against v0^2/(2 g mu_k) and a plane obstacle), a stack of three boxes, iterations per step, share of choosing the rows",
     "impact-zone": "backward of the collision-response QP: QR form against the full KKT solve at 16x16, 32x32, 64x64 cloth sizes",
 }
 
