@@ -9,6 +9,7 @@ import pytest
 
 from softbody.active_set import ActiveSet
 from softbody.contact import Contact
+from softbody.gradients import ImplicitForward
 from softbody.material import Material
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, SceneError, build, initial_state, prepare
@@ -102,11 +103,38 @@ def test_sliding_gradients_match_central_differences():
 
     at = (jnp.asarray(0.25), jnp.asarray(0.3), jnp.asarray(1e6))
     grads = jax.grad(final_x, argnums=(0, 1, 2))(*at)
+    # forward mode (ImplicitForward) gives the same derivative in mu_k
+    forward_model, _ = _scene(mu_k=0.25, options=Options(dt=DT, tol=1e-10, max_iter=3000,
+                                                         adjoint=ImplicitForward()))
+
+    def forward_x(mu_k):
+        p = eqx.tree_at(lambda p: p.rows[0]["mu_k"], params, mu_k)
+        return jnp.mean(rollout(forward_model, p, _launched(forward_model, 0.3), n_steps=3).x[-1, N_SLAB:, 0])
+
+    tangent = jax.jvp(forward_x, (at[0],), (jnp.asarray(1.0),))[1]
+    assert abs(float(tangent) - float(grads[0])) <= 1e-6 * abs(float(grads[0]))
     for i, (g, eps) in enumerate(zip(grads, (1e-4, 1e-4, 1e2))):
         plus = [a + eps * (j == i) for j, a in enumerate(at)]
         minus = [a - eps * (j == i) for j, a in enumerate(at)]
         fd = (final_x(*plus) - final_x(*minus)) / (2 * eps)
         assert abs(float(g) - float(fd)) <= 1e-4 * abs(float(fd)) + 1e-12, (i, float(g), float(fd))
+
+
+def test_an_aligned_stack_keeps_its_rows_at_the_edges():
+    """Boxes stacked edge on edge: the perimeter of each box, bulging past the edges of the
+    one below by its Poisson expansion, stays on it (it used to lose its rows and sink)."""
+    box = grid_box((0.02, 0.02, 0.02), (2, 2, 2), origin=(-0.01, -0.01, 0.01 + THICKNESS))
+    on_top = grid_box((0.02, 0.02, 0.02), (2, 2, 2), origin=(-0.01, -0.01, 0.03 + 2 * THICKNESS))
+    material = Material(E=1e6, nu=0.3, density=1000.0)
+    model, params = build([SoftBody(SLAB, material, fixed="zmin", name="slab"), SoftBody(box, material, name="box"),
+                           SoftBody(on_top, material, name="top")],
+                          rows=[Touch("box", "slab", thickness=THICKNESS), Touch("top", "box", thickness=THICKNESS)],
+                          options=Options(dt=DT, tol=1e-8, max_iter=3000))
+    traj = rollout(model, params, initial_state(model), n_steps=8)
+    generator, p = model.rows[1], params.rows[1]
+    for k in range(1, 9):
+        frame = generator.frame(traj.x[k], generator.select(traj.x[k - 1], traj.x[k], p), p)
+        assert float(jnp.min(frame.phi)) > -1e-8 and int(jnp.sum(frame.phi < 1e-6)) >= 9
 
 
 def test_a_search_that_overflows_its_capacity_is_never_silent():
