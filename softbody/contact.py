@@ -8,6 +8,19 @@ obstacles (signed distance functions, :mod:`softbody.obstacles`) are one generat
 holds a few vertices, ...). Where several rows reach a vertex the solver keeps the deepest;
 it sees nothing of the generators but their rows.
 
+**Rows between bodies.** A pair generator (:class:`~softbody._interfaces.PairRows`, e.g.
+:class:`softbody.pairs.Touch`) gives rows that couple a vertex with a triangle of another
+surface (:class:`~softbody._interfaces.PairFrame`: up to 4 vertices, weights ``(1, -u, -v,
+-w)``), chosen once per step. Their forces act on both sides, so they cannot be projected
+vertex by vertex: the iterate carries each row's force ``f_r`` (N, on its touching vertex,
+world frame), the sweep takes the rows' forces into its right-hand side, and each
+iteration updates them by a projected Jacobi step at the new positions (normal part
+``f_n + depth / W_r >= 0``, tangential part on the friction cone, ``W_r = sum_a w_a^2 c_a /
+P_a`` the row's compliance with each vertex's ``P_a`` shared among its ``c_a`` rows) and
+moves the vertices by the change. At a fixed point the forces balance ``grad Phi`` and every
+row is complementary (a closed gap with a pushing force, or an open one with none) with
+Coulomb's law tangentially, exactly where rows share vertices. See :func:`_pair_update`.
+
 **The contact solver** :class:`Contact` solves each implicit-Euler step
 ``min Phi(x)`` subject to non-penetration and Coulomb friction with the design's
 velocity-space splitting iteration::
