@@ -9,6 +9,7 @@ import pytest
 
 from softbody.active_set import ActiveSet
 from softbody.contact import Contact
+from softbody import impact_zone
 from softbody.gradients import ImplicitForward
 from softbody.material import Material
 from softbody.meshing.grid import grid_box
@@ -143,6 +144,49 @@ def test_a_search_that_overflows_its_capacity_is_never_silent():
     assert int(traj.info.result[0]) == RESULTS.overflow and bool(traj.info.overflow[0])
     with pytest.raises(SimulationError, match=r"step 0: the contact search .*\.Touch\(\.\.\., capacity=\.\.\.\)"):
         rollout(model, params, _launched(model, 0.3), n_steps=1)
+
+
+@pytest.mark.slow
+def test_frictionless_step_and_its_gradient_match_the_collision_qp():
+    """With no elasticity to speak of (E = 1e-6 Pa), no gravity and a held slab, a step is the
+    collision response QP ``min 1/2 |z - x_hat|_W^2 s.t. G z + h <= 0`` with ``x_hat = x_n +
+    h v_n``, ``W = M / h^2`` and the rows' planes as constraints (softbody.impact_zone): its
+    solution and its KKT/QR derivative are the oracle of the step and of the implicit
+    derivative through the pair rows."""
+    material = Material(E=1e-6, nu=0.3, density=1000.0)
+    block = grid_box((0.02, 0.02, 0.01), (2, 2, 1), origin=(-0.01, -0.01, 0.01 + THICKNESS + 2e-4))
+    model, params = build([SoftBody(SLAB, material, fixed=lambda p: np.ones(len(p), bool), name="slab"),
+                           SoftBody(block, material, name="block")],
+                          rows=[Touch("block", "slab", mu_s=0.0, mu_k=0.0, thickness=THICKNESS)],
+                          options=Options(dt=DT, gravity=(0.0, 0.0, 0.0), tol=1e-12, atol=1e-14, max_iter=5000))
+    state = initial_state(model)
+    v = np.zeros((model.n_vertices, 3))
+    # the base's columns arrive 0.1, 0.5 and 0.9 mm down in the step: the first stays clear of
+    # the 0.2 mm gap, the others land
+    v[N_SLAB:, 2] = -0.01 - 4.0 * (np.asarray(state.x)[N_SLAB:, 0] + 0.01)
+    c = np.random.default_rng(0).normal(size=(block.n_vertices, 3))
+
+    def loss(velocity):
+        traj = rollout(model, params, eqx.tree_at(lambda s: s.v, state, velocity), n_steps=1)
+        return jnp.sum(traj.x[-1, N_SLAB:] * c), traj.x
+
+    (_, x), grad_v = jax.value_and_grad(loss, has_aux=True)(jnp.asarray(v))
+    generator, p = model.rows[0], params.rows[0]
+    frame = generator.frame(x[1], generator.select(x[0], x[1], p), p)
+    rows = [r for r in range(generator.size) if frame.phi[r] < 1e20 and frame.vertices[r, 0] >= N_SLAB]
+    G, h = np.zeros((len(rows), 3 * block.n_vertices)), np.zeros(len(rows))
+    for i, r in enumerate(rows):  # the plane of the slab's triangle: -(n . z_p - n . a - thickness) <= 0
+        q = int(frame.vertices[r, 0]) - N_SLAB
+        G[i, 3 * q:3 * q + 3] = -frame.normal[r]
+        h[i] = float(frame.normal[r] @ x[1, frame.vertices[r, 1]]) + THICKNESS
+    w = np.repeat(np.asarray(prepare(model, params).mass)[N_SLAB:, 0] / DT**2, 3)
+    x_hat = (np.asarray(state.x)[N_SLAB:] + DT * v[N_SLAB:]).ravel()
+    z, lam = impact_zone.solve(x_hat, w, G, h)
+    assert len(rows) == 9 and int(np.sum(lam > 0)) == 6
+    np.testing.assert_allclose(np.asarray(x[1, N_SLAB:]).ravel(), z, rtol=0, atol=1e-9)
+    reference = impact_zone.backward_qr(x_hat, w, G, h, z, lam, c.ravel()).dx
+    np.testing.assert_allclose(np.asarray(grad_v[N_SLAB:]).ravel() / DT, reference, rtol=0,
+                               atol=1e-6 * np.abs(reference).max())
 
 
 def test_refusals_before_compiling():
