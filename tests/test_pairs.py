@@ -93,8 +93,9 @@ def test_sliding_block_decelerates_at_mu_k_g(scene):
 
 
 @pytest.mark.slow
-def test_sliding_gradients_match_central_differences():
-    """d(block's final x)/d(mu_k, v0, E) in sliding, reverse mode, against central differences."""
+def test_sliding_and_sticking_gradients_match_central_differences():
+    """d(block's final x)/d(mu_k, v0, E) in sliding and in sticking, reverse mode, against
+    central differences; forward mode against reverse."""
     model, params = _scene(mu_k=0.25)
 
     def final_x(mu_k, v0, E):
@@ -114,11 +115,15 @@ def test_sliding_gradients_match_central_differences():
 
     tangent = jax.jvp(forward_x, (at[0],), (jnp.asarray(1.0),))[1]
     assert abs(float(tangent) - float(grads[0])) <= 1e-6 * abs(float(grads[0]))
-    for i, (g, eps) in enumerate(zip(grads, (1e-4, 1e-4, 1e2))):
-        plus = [a + eps * (j == i) for j, a in enumerate(at)]
-        minus = [a - eps * (j == i) for j, a in enumerate(at)]
-        fd = (final_x(*plus) - final_x(*minus)) / (2 * eps)
-        assert abs(float(g) - float(fd)) <= 1e-4 * abs(float(fd)) + 1e-12, (i, float(g), float(fd))
+    # sliding (v0 = 0.3 m/s: it slides through the 3 steps), then sticking (v0 = 1 cm/s: the
+    # static cone stops it in the first step; mu_k does not act, its derivative is zero)
+    for at in (at, (at[0], jnp.asarray(0.01), at[2])):
+        grads = jax.grad(final_x, argnums=(0, 1, 2))(*at)
+        for i, (g, eps) in enumerate(zip(grads, (1e-4, 1e-4, 1e2))):
+            plus = [a + eps * (j == i) for j, a in enumerate(at)]
+            minus = [a - eps * (j == i) for j, a in enumerate(at)]
+            fd = (final_x(*plus) - final_x(*minus)) / (2 * eps)
+            assert abs(float(g) - float(fd)) <= 1e-4 * abs(float(fd)) + 1e-12, (float(at[1]), i, float(g), float(fd))
 
 
 def test_an_aligned_stack_keeps_its_rows_at_the_edges():
