@@ -59,7 +59,7 @@ from softbody import broad_phase
 from softbody._interfaces import PairFrame, PairRows
 from softbody._types import SceneError
 
-__all__ = ["Touch"]
+__all__ = ["Touch", "every_pair"]
 
 # the default capacity of the broad phase per pass: candidate triangles per surface vertex
 _CANDIDATES_PER_VERTEX = 64
@@ -264,3 +264,24 @@ class Touch(PairRows):
             weights=jnp.concatenate([ones[:, None], -bary], axis=1),
             phi=phi, normal=normal,
             mu_s=params["mu_s"] * ones, mu_k=params["mu_k"] * ones, restitution=params["restitution"] * ones)
+
+
+def every_pair(*names: str, **contact) -> list[Touch]:
+    """Contact between every two of the named bodies: ``build(bodies, rows=every_pair("a",
+    "b", "c", mu_s=0.5))`` is ``rows=[Touch("a", "b", ...), Touch("a", "c", ...), Touch("b",
+    "c", ...)]``.
+
+    Arguments:
+        names: at least two distinct body names.
+        contact: :class:`Touch`'s keyword arguments, the same for every pair.
+
+    Returns:
+        The :class:`Touch` of each unordered pair, in the order of ``names``.
+
+    Raises:
+        SceneError: fewer than two names, a repeated name, or what :class:`Touch` refuses.
+    """
+    if len(names) < 2 or len(set(names)) != len(names):
+        raise SceneError(f"every_pair takes two or more distinct body names, got {list(names)}")
+    return [Touch(a, b, **contact) for i, a in enumerate(names) for b in names[i + 1:]]
+

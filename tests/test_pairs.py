@@ -14,7 +14,7 @@ from softbody.gradients import ImplicitForward
 from softbody.material import Material
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, SceneError, build, initial_state, prepare
-from softbody.pairs import Touch
+from softbody.pairs import Touch, every_pair
 from softbody.rigid import RigidBody
 from softbody.scene import SoftBody
 from softbody.simulate import SimulationError, contact_forces, rollout
@@ -203,6 +203,11 @@ def test_refusals_before_compiling():
         Touch("block", "slab", thickness=0.0)
     with pytest.raises(SceneError, match="self-contact"):
         Touch("block", "block")
+    pairs = every_pair("slab", "block", "lid", mu_s=0.4, thickness=2e-3)
+    assert [(t.first, t.second, t.mu_s, t.thickness) for t in pairs] == [
+        ("slab", "block", 0.4, 2e-3), ("slab", "lid", 0.4, 2e-3), ("block", "lid", 0.4, 2e-3)]
+    with pytest.raises(SceneError, match="two or more distinct body names"):
+        every_pair("slab", "slab")
     with pytest.raises(SceneError, match="capacity must be a whole number"):
         Touch("block", "slab", capacity=0)
     with pytest.raises(SceneError, match="mu_k <= mu_s"):
