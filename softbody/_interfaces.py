@@ -64,6 +64,8 @@ class Capabilities:
         unknown = set(self.refuses) - set(FEATURES)
         if unknown:
             raise ValueError(f"unknown scene features {sorted(unknown)}; the features are {list(FEATURES)}")
+        if "contact" in self.refuses and "pair contact" not in self.refuses:  # pair rows are contact rows
+            object.__setattr__(self, "refuses", {"pair contact": self.refuses["contact"], **self.refuses})
 
     @property
     def supported(self) -> tuple[str, ...]:

@@ -149,7 +149,7 @@ def _frames(rows, points, index, time) -> Frame:
 
     Arguments:
         rows: ``((generator, params), ...)`` of the step (:attr:`StepProblem.rows`); pair
-            generators among them are not asked here (see :func:`_pair_frame`).
+            generators among them are not asked here (see :meth:`_Pairs.frame`).
         points: ``(m, 3)`` trial positions of the vertices ``index`` ``(m,)``; time: s.
 
     Returns:
@@ -174,6 +174,8 @@ class _Pairs(NamedTuple):
 
     @staticmethod
     def select(problem: StepProblem, x_end) -> "_Pairs":
+        """The rows that a step ending at ``x_end`` ``(n, 3)`` meets (not differentiated)."""
+        x_end = jax.lax.stop_gradient(x_end)
         return _Pairs(tuple((generator, params, generator.select(problem.x_n, x_end, params))
                             for generator, params in problem.rows if isinstance(generator, PairRows)))
 
@@ -184,10 +186,6 @@ class _Pairs(NamedTuple):
     @property
     def selection(self) -> tuple:
         return tuple(selection for _, _, selection in self.rows)
-
-    def reselect(self, problem: StepProblem, x_end) -> "_Pairs":
-        """The rows that a step ending at ``x_end`` ``(n, 3)`` meets."""
-        return _Pairs.select(problem, jax.lax.stop_gradient(x_end))
 
     def chosen(self, selection) -> "_Pairs":
         """These generators with the selection ``selection`` (as :attr:`selection` gives)."""
@@ -411,7 +409,7 @@ class Contact:
                 "the Naive splitting has nothing to invert in a static solve (no mass): "
                 "use ScaledDiagonal() or Diagonal()"
             )
-        pairs = _Pairs.select(problem, jax.lax.stop_gradient(x0))
+        pairs = _Pairs.select(problem, x0)
         iteration = self.map(problem, coordinates, pairs)
         n = x0.shape[0]
         free = problem.free[:, 0] > 0
@@ -677,25 +675,25 @@ class Contact:
             return *jax.lax.cond(near | (jnp.min(distance(x1, t_end)) < 0), redo, lambda: (sol, cache)), ()
 
         # Pair rows: those of the free step's end where it ran, else of the predicted end
-        reached = pairs.reselect(problem, x1)
+        reached = _Pairs.select(problem, x1)
         selection = jax.tree.map(lambda a, b: jnp.where(near, a, b), pairs.selection, reached.selection)
         penetrates = (jnp.min(distance(x1, t_end)) < 0) | (reached.gap(x1) < 0)
 
         def redo_pairs():
-            again, selection_used = self._iterate_pairs(problem, coordinates, pairs, selection, x0, q0, threshold,
-                                                        max_iter)
+            again, selection_used = self._iterate_pairs(problem, coordinates, pairs, selection, lifted, q0,
+                                                        threshold, max_iter)
             return again._replace(evaluations=again.evaluations + sol.evaluations), selection_used
 
         sol, selection = jax.lax.cond(near | penetrates, redo_pairs, lambda: (sol, selection))
         return sol, cache, selection
 
-    def _iterate_pairs(self, problem, coordinates, pairs: _Pairs, selection, x0, q0, threshold, max_iter: int):
-        """The contact iteration with pair rows: solved with the rows of ``selection``; if
-        its result meets rows it did not have (a vertex inside a triangle that it was not
-        paired with at the start), solved once more from the start with the rows of its
-        result. Returns ``(solution, the selection of its rows)``."""
-        lifted = self.map(problem, coordinates, pairs.chosen(selection)).lift(x0)
-        zero = jnp.asarray(0)
+    def _iterate_pairs(self, problem, coordinates, pairs: _Pairs, selection, lifted, q0, threshold, max_iter: int):
+        """The contact iteration with pair rows from the iterate ``lifted`` ``(n + e + m, 3)``:
+        solved with the rows of ``selection``; if its result meets rows it did not have (a
+        vertex inside a triangle that it was not paired with at the start), solved once more
+        from the start with the rows of its result. Returns ``(solution, the selection of
+        its rows)``."""
+        n, zero = problem.x_n.shape[0], jnp.asarray(0)
 
         def attempt(carry):
             selection, previous, k, _ = carry
@@ -703,12 +701,12 @@ class Contact:
                                 max_iter)
             sol = sol._replace(iterations=sol.iterations + previous.iterations,
                                evaluations=sol.evaluations + previous.evaluations)
-            x1 = _positions(sol.x, x0.shape[0])
-            reached = pairs.reselect(problem, x1)
+            x1 = _positions(sol.x, n)
+            reached = _Pairs.select(problem, x1)
             again = (reached.gap(x1) < -self.margin) & (k == 0)  # a row it did not have is penetrated
             return jax.tree.map(lambda a, b: jnp.where(again, a, b), reached.selection, selection), sol, k + 1, again
 
-        start = Solution(lifted, q0, zero, zero, jnp.asarray(jnp.inf, x0.dtype), jnp.asarray(False))
+        start = Solution(lifted, q0, zero, zero, jnp.asarray(jnp.inf, lifted.dtype), jnp.asarray(False))
         selection, sol, _, _ = jax.lax.while_loop(lambda c: (c[2] == 0) | c[3], attempt,
                                                   (selection, start, zero, jnp.asarray(False)))
         return sol, selection

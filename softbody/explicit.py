@@ -51,7 +51,7 @@ class SymplecticEuler(Integrator):
     dt: Array
 
     capabilities: ClassVar[Capabilities] = Capabilities(
-        refuses={"pair contact": "has no contact handling", "contact": "has no contact handling",
+        refuses={"contact": "has no contact handling",
                  "skeleton": "has no joint constraints",
                  "rigid bodies": "has no joint constraints (rigid bodies are root links of reduced coordinates)",
                  "motion": "does not move fixed vertices"},

@@ -98,9 +98,8 @@ class Unrolled(Adjoint):
     remat: bool = True
 
     capabilities: ClassVar[Capabilities] = Capabilities(
-        refuses={feature: "differentiates the iterations as they ran, but a step with contact is differentiated "
-                          "through the fixed point of its contact iteration (softbody.fixed_point)"
-                 for feature in ("pair contact", "contact")},
+        refuses={"contact": "differentiates the iterations as they ran, but a step with contact is "
+                              "differentiated through the fixed point of its contact iteration (softbody.fixed_point)"},
         instead="use the default adjoint, Implicit() (or ImplicitForward())")
 
     def solve(self, model, prep, state, activation, force, *, static):

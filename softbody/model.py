@@ -258,7 +258,8 @@ def build(
         block_to_data.append(None if s is None else entry_to_data[offset: offset + s.size * s.shape[1]])
         offset += 0 if s is None else s.size * s.shape[1]
     features = scene_features(
-        contact=bool(obstacles or generators), pairs=any(isinstance(g, PairRows) for g in generators), skeleton=isinstance(skeleton, Skeleton) and bool(skeleton.links),
+        contact=bool(obstacles or generators), pairs=any(g.kind == "pair" for g in generators),
+        skeleton=isinstance(skeleton, Skeleton) and bool(skeleton.links),
         rigid=bool(scene.links), motion=any(part.motion is not None for part in scene.parts), partial=partial)
     _check_capabilities(features, options, reduced=skeleton is not None or bool(scene.links))
     rig = _rig(mesh, skeleton, free, scene)

@@ -92,6 +92,12 @@ def _closest(p, a, b, c):
     return jnp.where(((d1 <= 0) & (d2 <= 0))[..., None], jnp.stack([one, zero, zero], -1), out)  # corner a
 
 
+def _normal(a, b, c):
+    """The unit normals ``(..., 3)`` of the triangles ``(a, b, c)`` (right-hand rule)."""
+    normal = jnp.cross(b - a, c - a)
+    return normal / jnp.linalg.norm(normal, axis=-1, keepdims=True)
+
+
 def _barycentric(p, a, b, c):
     """Barycentric coordinates ``(u, v, w)`` ``(..., 3)`` of the projection of ``p`` onto the
     plane of the triangle ``(a, b, c)`` (each ``(..., 3)``); unclamped."""
@@ -118,8 +124,9 @@ class Touch(PairRows):
             other surface.
         capacity: the most candidate (vertex, triangle) pairs the broad phase
             (:func:`softbody.broad_phase.candidates`) holds per step and direction (static;
-            default 64 per surface vertex; the box tests' budget is 4 times it). A step that finds more ends with the result
-            code ``RESULTS.overflow`` (a rollout raises, naming this fix).
+            default 64 per surface vertex; the box tests' budget is 4 times it). A step that
+            finds more ends with the result code ``RESULTS.overflow`` (a rollout raises,
+            naming this fix).
 
     The friction coefficients, restitution and thickness are the generator's parameters
     (``params.rows[i]``, a dict with those keys): differentiable.
@@ -206,9 +213,9 @@ class Touch(PairRows):
         return self._vertices, self._triangles
 
     def select(self, x_start, x_end, params):
-        """Per surface vertex, the nearest triangle of the other body that it lies over at
-        ``x_end``, among the broad phase's candidates, and whether it is within reach (see
-        the module docstring).
+        """Per surface vertex, the triangle of the other body nearest to it at ``x_end``
+        among the broad phase's candidates, and whether it is within reach (see the module
+        docstring).
 
         Returns:
             ``((triangles (P, 3) int, valid (P,) bool), overflow)``: ``overflow`` (bool) where
@@ -227,8 +234,7 @@ class Touch(PairRows):
             row = jnp.asarray(local)[found.vertex]  # (C,) each candidate's vertex, among verts
             p, tri = x_end[found.vertex], x_end[jnp.asarray(faces)[found.triangle]]  # (C, 3), (C, 3, 3)
             a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-            normal = jnp.cross(b - a, c - a)
-            normal = normal / jnp.linalg.norm(normal, axis=-1, keepdims=True)
+            normal = _normal(a, b, c)
             away = p - jnp.sum(_closest(p, a, b, c)[:, :, None] * tri, axis=1)  # from the closest point
             dist = jnp.linalg.norm(away, axis=-1)
             # where several triangles are as near (their common edge or corner is nearest), the
@@ -252,8 +258,7 @@ class Touch(PairRows):
         vertices = np.concatenate(vertices)
         (triangles, valid), _ = selection
         p, a, b, c = x[vertices], x[triangles[:, 0]], x[triangles[:, 1]], x[triangles[:, 2]]
-        normal = jnp.cross(b - a, c - a)
-        normal = normal / jnp.linalg.norm(normal, axis=-1, keepdims=True)
+        normal = _normal(a, b, c)
         bary = jnp.clip(_barycentric(p, a, b, c), 0.0, 1.0)
         bary = bary / jnp.sum(bary, axis=-1, keepdims=True)
         phi = jnp.where(valid, jnp.sum((p - a) * normal, -1) - params["thickness"] * reach, jnp.inf)

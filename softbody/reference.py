@@ -304,7 +304,7 @@ _NO_CONTACT = "has no contact: its steps would pass through the obstacles"
 
 #: What the Newton reference (newton_step, newton_rollout, newton_static) cannot step.
 NEWTON = Capabilities(
-    refuses={"pair contact": _NO_CONTACT, "contact": _NO_CONTACT, "skeleton": _FREE_VERTICES, "rigid bodies": _FREE_VERTICES,
+    refuses={"contact": _NO_CONTACT, "skeleton": _FREE_VERTICES, "rigid bodies": _FREE_VERTICES,
              "motion": "keeps fixed vertices in place"},
     instead="step such a scene with softbody.simulate.rollout")
 
