@@ -38,7 +38,7 @@ from softbody.material import Material
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, build
 from softbody.scene import SoftBody
-from softbody.obstacles import Plane
+from softbody.contact.obstacles import Plane
 
 LENGTH, WIDTH, HEIGHT = 0.12, 0.02, 0.02
 N_SEGMENTS = 4

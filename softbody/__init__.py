@@ -64,16 +64,17 @@ _NAMES = {
     "Membrane": "softbody.shell",
     "Skeleton": "softbody.skeleton",
     "Contact": "softbody.contact",
-    "Touch": "softbody.pairs",
+    "Touch": "softbody.contact.pairs",
     "RESULTS": "softbody._types",
     **dict.fromkeys(("BDF2", "ImplicitEuler", "SimulationError", "Trajectory", "check_trajectory", "contact_forces",
                     "rollout", "solve_static", "step"), "softbody.simulate"),
     **dict.fromkeys(("LBFGS", "LocalGlobal"), "softbody.solvers"),
     **dict.fromkeys(("Adjoint", "Implicit", "ImplicitForward", "Unrolled", "check_grad"), "softbody.gradients"),
 }
-#: Submodules reachable as attributes (``sb.meshing``, ``sb.contact``, ...).
-_MODULES = ("actuators", "contact", "control", "io", "linsolve", "meshing", "obstacles", "pairs", "reference",
-            "render", "skeleton", "viewer")
+#: Submodules reachable as attributes (``sb.meshing``, ``sb.contact``, ...): name -> module.
+_MODULES = {**{name: f"softbody.{name}" for name in ("actuators", "contact", "control", "io", "linsolve", "meshing",
+                                                     "reference", "render", "skeleton", "viewer")},
+            "obstacles": "softbody.contact.obstacles", "pairs": "softbody.contact.pairs"}
 
 __all__ = sorted(_NAMES) + list(_MODULES)
 
@@ -82,7 +83,7 @@ def __getattr__(name: str):
     if name in _NAMES:
         value = getattr(importlib.import_module(_NAMES[name]), name)
     elif name in _MODULES:
-        value = importlib.import_module(f"softbody.{name}")
+        value = importlib.import_module(_MODULES[name])
     else:
         raise AttributeError(f"module 'softbody' has no attribute {name!r}")
     globals()[name] = value

@@ -273,7 +273,7 @@ class Rows:
     restitution of :class:`Frame`. The contact solver (:class:`softbody.contact.Contact`)
     asks every generator of a scene for its rows at trial positions and, on a vertex that
     several generators reach, keeps the deepest row; it knows nothing else about them.
-    The scene's obstacles are one generator (:class:`softbody.obstacles.ObstacleRows`);
+    The scene's obstacles are one generator (:class:`softbody.contact.obstacles.ObstacleRows`);
     :func:`softbody.model.build` takes others as ``rows=[...]``. A row couples one vertex
     here; rows on vertex pairs and triangles (bodies touching bodies) will carry their
     vertices and barycentric weights.
@@ -424,7 +424,7 @@ class Coordinates:
                 normal (c, 3))`` for trial positions ``y`` of the scene's vertices ``index``
                 (see :class:`softbody.contact.Contact`), for coordinates whose own unknowns
                 touch obstacles; ``kinetic=True``: vertices sliding at the step's start
-                (``softbody.contact.SLIDING_SPEED``) meet the kinetic cone only.
+                (``softbody.contact.law.SLIDING_SPEED``) meet the kinetic cone only.
 
         Returns:
             A :class:`ContactSweep`.

@@ -239,7 +239,7 @@ class Model:
     block_to_data: tuple = ()
     terms: tuple = ()  # actuator terms (see softbody.simulate for the term kinds)
     channel_names: tuple[str, ...] = ()
-    obstacles: tuple = ()  # obstacle objects (see softbody.obstacles)
+    obstacles: tuple = ()  # obstacle objects (see softbody.contact.obstacles)
     rows: tuple = ()  # contact row generators besides the obstacles (softbody._interfaces.Rows)
     stiffness_damping: bool = False  # some material had beta > 0 at build time
     rig: object = None  # the skeleton bound to the mesh (softbody.skeleton.Rig), or None

@@ -99,7 +99,7 @@ class Unrolled(Adjoint):
 
     capabilities: ClassVar[Capabilities] = Capabilities(
         refuses={"contact": "differentiates the iterations as they ran, but a step with contact is "
-                              "differentiated through the fixed point of its contact iteration (softbody.fixed_point)"},
+                              "differentiated through the fixed point of its contact iteration (softbody.contact.fixed_point)"},
         instead="use the default adjoint, Implicit() (or ImplicitForward())")
 
     def solve(self, model, prep, state, activation, force, *, static):

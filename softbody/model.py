@@ -29,7 +29,7 @@ from softbody.contact import Contact
 from softbody.elastic import deformation_gradient, local_matrices, rest_geometry
 from softbody.gradients import Adjoint, Implicit
 from softbody.material import pd_weights
-from softbody.obstacles import ObstacleRows
+from softbody.contact.obstacles import ObstacleRows
 from softbody.skeleton import Reduced, Rig, Skeleton, SkeletonError
 from softbody.solvers import LBFGS, NonlinearSolver, Step, Vertices
 
@@ -199,7 +199,7 @@ def build(
             (:class:`~softbody._interfaces.Term` subclasses: a spring between two bodies,
             a membrane on a surface, ...). A :class:`~softbody._interfaces.VertexTerm`'s
             ``stencil()`` blocks join the PD matrix. Their channels follow the actuators'.
-        obstacles: obstacles for contact and friction (see :mod:`softbody.obstacles`).
+        obstacles: obstacles for contact and friction (see :mod:`softbody.contact.obstacles`).
         rows: other contact row generators (:class:`~softbody._interfaces.Rows`: constraints
             that keep vertices out of something, with friction); the contact solver meets
             them as it meets the obstacles' rows. Their parameters are ``params.rows``.
@@ -235,7 +235,7 @@ def build(
     for i, generator in enumerate(generators):
         if not isinstance(generator, (Rows, PairRows)):
             raise SceneError(f"rows[{i}] is a {type(generator).__name__}, not a contact row generator; give "
-                             "softbody.pairs.Touch(...) for bodies touching bodies, or subclass "
+                             "softbody.contact.pairs.Touch(...) for bodies touching bodies, or subclass "
                              "softbody._interfaces.Rows (obstacles go in obstacles=[...])")
     generators = tuple(g.bind(mesh, scene.parts) if isinstance(g, PairRows) else g for g in generators)
     stencils = _stencils((*scene.terms, *actuators, *terms), n)

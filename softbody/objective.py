@@ -16,7 +16,7 @@ from softbody._interfaces import ElementTerm, VertexTerm, VolumeTerm
 from softbody.elastic import (corotated, deformation_gradient, scatter_stress, shape_gradients, strain_rate_damping,
                               stress_derivative_product)
 from softbody._types import RESULTS, Model, Prepared, State, StepInfo
-from softbody.obstacles import ObstacleRows
+from softbody.contact.obstacles import ObstacleRows
 from softbody.solvers import Solution, StepProblem
 
 Array = jax.Array
@@ -242,7 +242,7 @@ def step_gradient_vjp(model: Model, prep: Prepared, x_n, v_n, q_n, activation, f
 
 def contact_rows(model: Model, prep: Prepared) -> tuple:
     """The scene's contact row generators with their parameters, ``((generator, params), ...)``:
-    its obstacles' (:class:`~softbody.obstacles.ObstacleRows`, on ``params.obstacles``) first,
+    its obstacles' (:class:`~softbody.contact.obstacles.ObstacleRows`, on ``params.obstacles``) first,
     if any, then ``build(rows=...)``'s (on ``params.rows``); ``()`` without contact."""
     obstacles = ((ObstacleRows(model.obstacles), prep.obstacles),) if model.obstacles else ()
     return obstacles + tuple(zip(model.rows, prep.rows))

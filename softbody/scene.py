@@ -36,7 +36,7 @@ from softbody._types import SceneError
 from softbody.material import Material
 from softbody.meshing import TetMesh
 from softbody.meshing.mesh import Region
-from softbody.obstacles import check_motion
+from softbody.contact.obstacles import check_motion
 from softbody.rigid import RigidBody
 from softbody.skeleton import Free, Link
 

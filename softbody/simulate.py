@@ -91,8 +91,8 @@ _VARIANTS = ("max_iterations", "positions", "velocities", "force residual", "inv
 
 #: The message of a step whose contact search between bodies overflowed.
 _OVERFLOW = ("{where}: the contact search between bodies found more candidate pairs than its capacity holds, so "
-             "contacts may be missing; rebuild with a larger capacity, softbody.pairs.Touch(..., capacity=...) "
-             "(softbody.broad_phase.required_capacity measures what a configuration needs).")
+             "contacts may be missing; rebuild with a larger capacity, softbody.contact.pairs.Touch(..., capacity=...) "
+             "(softbody.contact.broad_phase.required_capacity measures what a configuration needs).")
 
 
 def _step_templates(model: Model, call: str = "rollout") -> tuple[str, ...]:

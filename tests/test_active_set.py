@@ -1,4 +1,4 @@
-"""The contact solver's fast iteration (softbody.active_set): the splitting's fixed point,
+"""The contact solver's fast iteration (softbody.contact.active_set): the splitting's fixed point,
 reached in fewer iterations, with the same implicit derivative, and the fallback to the
 splitting when a touching vertex is not among its candidates.
 
@@ -12,14 +12,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from softbody.active_set import ActiveSet
+from softbody.contact.active_set import ActiveSet
 from softbody.contact import Contact
 from softbody.material import Material
 from softbody.meshing.grid import grid_box
 from softbody.meshing import Region
 from softbody.model import Options, SceneError, build, initial_state, prepare
 from softbody.scene import SoftBody
-from softbody.obstacles import Plane, Sphere
+from softbody.contact.obstacles import Plane, Sphere
 from softbody.simulate import step
 from softbody.skeleton import Free, Link, Skeleton
 from softbody.solvers import LocalGlobal

@@ -1,9 +1,9 @@
-"""Anderson mixing (softbody.anderson): separate blocks mix as each would alone."""
+"""Anderson mixing (softbody.contact.anderson): separate blocks mix as each would alone."""
 
 import jax.numpy as jnp
 import numpy as np
 
-from softbody import anderson
+from softbody.contact import anderson
 
 
 def _problem(seed, size, rho):

@@ -15,7 +15,7 @@ from softbody.material import Material
 from softbody.meshing import examples
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, build, initial_state, prepare
-from softbody.obstacles import Plane
+from softbody.contact.obstacles import Plane
 from softbody.rotation import polar
 from softbody.scene import SoftBody
 from softbody.simulate import BDF2, contact_forces, rollout

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from softbody.active_set import ActiveSet
+from softbody.contact.active_set import ActiveSet
 from softbody.actuators import Muscle
 from softbody.actuators.joints import JointTorque
 from softbody.contact import Contact
@@ -15,7 +15,7 @@ from softbody.io import Result
 from softbody.material import Material
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, SceneError, build, initial_state
-from softbody.obstacles import Plane
+from softbody.contact.obstacles import Plane
 from softbody.scene import SoftBody
 from softbody.simulate import rollout
 

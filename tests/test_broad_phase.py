@@ -1,4 +1,4 @@
-"""The broad phase (:mod:`softbody.broad_phase`) against brute force: two moving spheres
+"""The broad phase (:mod:`softbody.contact.broad_phase`) against brute force: two moving spheres
 with and without body filters, a folded sheet touching itself, overflow of both fixed
 bounds, ``jit`` and ``vmap`` over scenes, and the input checks."""
 
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.spatial import ConvexHull
 
-from softbody import broad_phase as bp
+from softbody.contact import broad_phase as bp
 
 MARGIN = 0.02
 

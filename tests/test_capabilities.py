@@ -12,7 +12,7 @@ import pytest
 from softbody import simulate
 from softbody._interfaces import Capabilities
 from softbody._types import FEATURES
-from softbody.active_set import ActiveSet
+from softbody.contact.active_set import ActiveSet
 from softbody.contact import Contact
 from softbody.explicit import SymplecticEuler, explicit_rollout
 from softbody.gradients import Unrolled
@@ -20,8 +20,8 @@ from softbody.material import Material
 from softbody.meshing.grid import grid_box
 from softbody.meshing.mesh import Region
 from softbody.model import Options, SceneError, build, initial_state, prepare
-from softbody.obstacles import Plane
-from softbody.pairs import Touch
+from softbody.contact.obstacles import Plane
+from softbody.contact.pairs import Touch
 from softbody.reference import diffrax_rollout, newton_rollout, newton_static, newton_step
 from softbody.rigid import RigidBody
 from softbody.scene import Fix, SoftBody

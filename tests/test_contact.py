@@ -15,14 +15,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from softbody import contact, io
+from softbody import io
+from softbody.contact import law as contact_law
 from softbody.contact import CONTACT_STATES, Contact
 from softbody.material import Material
 from softbody.meshing import examples
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, SceneError, build, initial_state, prepare
 from softbody.scene import SoftBody
-from softbody.obstacles import (
+from softbody.contact.obstacles import (
     Box,
     Capsule,
     HeightField,
@@ -37,7 +38,7 @@ from softbody.obstacles import (
 )
 from softbody.simulate import contact_forces, rollout, step
 from softbody.solvers import LBFGS, LocalGlobal, StepProblem, Vertices
-from softbody.splitting import Diagonal, Naive, ScaledDiagonal, _pd_split, splitting_spectral_radius
+from softbody.contact.splitting import Diagonal, Naive, ScaledDiagonal, _pd_split, splitting_spectral_radius
 
 from incline import G, acceleration, ramped_gravity, rot_y
 
@@ -125,7 +126,7 @@ def test_per_vertex_contact_rule():
     frame = list(nearest_obstacle(((plane, params),), y, 0.0))
     frame[5] = jnp.array([0.0, 0.0, 0.0, 0.5, 0.0])  # per-vertex restitution
     free = jnp.array([[1.0], [1.0], [1.0], [1.0], [0.0]])  # the last vertex is fixed: untouched
-    x = np.asarray(contact._contact_step(y, x_n, v_n, h, tuple(frame), free))
+    x = np.asarray(contact_law._contact_step(y, x_n, v_n, h, tuple(frame), free))
     np.testing.assert_allclose(x[0], y[0])
     np.testing.assert_allclose(x[1], [0.0, 0.0, 0.0], atol=1e-15)
     slip = np.array([0.03, 0.04]) * (1 - mu_k * 0.01 / 0.05)
@@ -136,7 +137,7 @@ def test_per_vertex_contact_rule():
     # a moving obstacle: sticking means moving with its surface, x_n + h u
     belt = Moving(Plane(mu_s=mu_s), lambda t: (jnp.eye(3), jnp.array([0.2 * t, 0.0, 0.0])))
     frame = nearest_obstacle(((belt, belt.init_params()),), y[1:2], 0.0)
-    x = contact._contact_step(y[1:2], x_n[1:2], v_n[1:2], h, frame, free[:1])
+    x = contact_law._contact_step(y[1:2], x_n[1:2], v_n[1:2], h, frame, free[:1])
     np.testing.assert_allclose(x, [[0.2 * h, 0.0, 0.0]], atol=1e-15)
 
 

@@ -21,7 +21,7 @@ from softbody.material import Material
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, SceneError, build, initial_state
 from softbody.scene import SoftBody
-from softbody.obstacles import Plane
+from softbody.contact.obstacles import Plane
 from softbody.simulate import SimulationError, Trajectory, rollout
 from softbody import control as sc
 from softbody.control import ControlError

@@ -1,4 +1,4 @@
-"""The collision-response QP (softbody.impact_zone): the forward solution and its KKT
+"""The collision-response QP (softbody.contact.impact_zone): the forward solution and its KKT
 conditions, the two backwards against each other and against central differences, the JAX
 wrapper, and the errors for bad input.
 
@@ -10,7 +10,7 @@ import jax
 import numpy as np
 import pytest
 
-from softbody import impact_zone as iz
+from softbody.contact import impact_zone as iz
 from softbody.bench.impact_zone import contacts
 
 

@@ -14,7 +14,7 @@ from softbody.gradients import check_grad
 from softbody.material import Material
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, build, initial_state
-from softbody.obstacles import Plane
+from softbody.contact.obstacles import Plane
 from softbody.rigid import RigidBody
 from softbody.scene import SoftBody
 from softbody.simulate import rollout

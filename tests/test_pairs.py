@@ -1,4 +1,4 @@
-"""Bodies touching bodies (softbody.pairs.Touch): a soft block resting on and sliding over a
+"""Bodies touching bodies (softbody.contact.pairs.Touch): a soft block resting on and sliding over a
 soft slab held at its base, their gradients against central differences, and the refusals."""
 
 import equinox as eqx
@@ -7,14 +7,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from softbody.active_set import ActiveSet
+from softbody.contact.active_set import ActiveSet
 from softbody.contact import Contact
-from softbody import impact_zone
+from softbody.contact import impact_zone
 from softbody.gradients import ImplicitForward
 from softbody.material import Material
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, SceneError, build, initial_state, prepare
-from softbody.pairs import Touch, every_pair
+from softbody.contact.pairs import Touch, every_pair
 from softbody.rigid import RigidBody
 from softbody.scene import SoftBody
 from softbody.simulate import SimulationError, contact_forces, rollout
@@ -155,7 +155,7 @@ def test_a_search_that_overflows_its_capacity_is_never_silent():
 def test_frictionless_step_and_its_gradient_match_the_collision_qp():
     """With no elasticity to speak of (E = 1e-6 Pa), no gravity and a held slab, a step is the
     collision response QP ``min 1/2 |z - x_hat|_W^2 s.t. G z + h <= 0`` with ``x_hat = x_n +
-    h v_n``, ``W = M / h^2`` and the rows' planes as constraints (softbody.impact_zone): its
+    h v_n``, ``W = M / h^2`` and the rows' planes as constraints (softbody.contact.impact_zone): its
     solution and its KKT/QR derivative are the oracle of the step and of the implicit
     derivative through the pair rows."""
     material = Material(E=1e-6, nu=0.3, density=1000.0)

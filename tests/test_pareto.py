@@ -174,7 +174,7 @@ def test_no_contact_or_skeleton_work_without_obstacles_or_bones():
     from softbody.material import Material
     from softbody.model import Options, build
     from softbody.scene import SoftBody
-    from softbody.obstacles import Plane
+    from softbody.contact.obstacles import Plane
     from softbody.skeleton import Fixed, Link, Skeleton
     from softbody.solvers import LBFGS
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from softbody.model import Options, build, initial_state, prepare
-from softbody.obstacles import Plane
+from softbody.contact.obstacles import Plane
 from softbody.rigid import RigidBody
 from softbody.simulate import contact_forces, rollout
 

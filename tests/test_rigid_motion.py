@@ -13,7 +13,7 @@ from softbody.io import Result
 from softbody.material import Material
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, SceneError, build, initial_state, prepare
-from softbody.obstacles import Plane
+from softbody.contact.obstacles import Plane
 from softbody.reference import newton_rollout
 from softbody.rigid import RigidBody
 from softbody.scene import SoftBody

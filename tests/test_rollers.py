@@ -18,7 +18,7 @@ from softbody.meshing import TetMesh
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, SceneError, build, initial_state
 from softbody.scene import Fix, SoftBody
-from softbody.obstacles import Plane
+from softbody.contact.obstacles import Plane
 from softbody.reference import diffrax_rollout, newton_static
 from softbody.skeleton import Link, Skeleton
 from softbody.simulate import rollout, solve_static

@@ -17,7 +17,7 @@ from softbody.gradients import ImplicitForward, Unrolled, central_difference, ch
 from softbody.material import Material
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, build, initial_state
-from softbody.obstacles import Plane
+from softbody.contact.obstacles import Plane
 from softbody.scene import SoftBody
 from softbody.simulate import contact_forces, rollout
 

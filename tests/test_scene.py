@@ -14,10 +14,10 @@ from softbody.material import Material
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, SceneError, build, initial_state
 from softbody.scene import SoftBody
-from softbody.obstacles import Plane
+from softbody.contact.obstacles import Plane
 from softbody.simulate import _rollout, rollout
 from softbody.solvers import LBFGS, LocalGlobal, Step, Vertices
-from softbody.splitting import Diagonal
+from softbody.contact.splitting import Diagonal
 
 MESH = grid_box((0.04, 0.01, 0.01), (4, 1, 1))
 

@@ -18,7 +18,7 @@ from softbody.meshing import Region
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, SceneError, build, initial_state, prepare
 from softbody.scene import SoftBody
-from softbody.obstacles import Plane
+from softbody.contact.obstacles import Plane
 from softbody.simulate import contact_forces, rollout
 from softbody.solvers import NonlinearSolver
 from softbody.skeleton import (Fixed, Free, Link, Prismatic, Reduced, Revolute, Skeleton, SkeletonError,

@@ -18,7 +18,7 @@ from softbody.gradients import ImplicitForward, Unrolled, central_difference, ch
 from softbody.material import Material
 from softbody.meshing.grid import grid_box
 from softbody.model import Options, build, initial_state, prepare
-from softbody.obstacles import Plane
+from softbody.contact.obstacles import Plane
 from softbody.scene import SoftBody
 from softbody.simulate import rollout
 from softbody.solvers import LocalGlobal

@@ -1,4 +1,4 @@
-"""Bodies touching bodies (:class:`softbody.pairs.Touch`): physics checks and costs.
+"""Bodies touching bodies (:class:`softbody.contact.pairs.Touch`): physics checks and costs.
 
 Scenes (soft bodies, E = 1e6 Pa unless said, nu = 0.3, density 1e3 kg/m^3, contact
 thickness 1 mm, relative tolerance 1e-8):
@@ -10,19 +10,19 @@ thickness 1 mm, relative tolerance 1e-8):
 * ``slide``: a 2 x 2 x 1 cm block launched at v0 = 0.3 m/s along the same slab (mu_s = 0.5,
   mu_k = 0.3) until it stops, at dt = 0.01, 0.005, 0.0025 s. Reported: the stopping
   distance against ``v0^2 / (2 g mu_k)`` and against the same block on a
-  :class:`~softbody.obstacles.Plane` obstacle at the slab's top (the same implicit-Euler
+  :class:`~softbody.contact.obstacles.Plane` obstacle at the slab's top (the same implicit-Euler
   discretisation: its error is ``~ v0 h / 2``), iterations per step. And once with
   mu_s = mu_k = 0.3 at dt = 0.01 s: whether every step converges (the step where the block
   comes to rest is the hard one).
 
 * ``stack``: three 2 cm soft boxes stacked on the slab (mu_s = 0.5, mu_k = 0.4, each pair of
-  neighbours a :class:`~softbody.pairs.Touch`), dt = 0.01 s, 2 s: aligned, and each box
+  neighbours a :class:`~softbody.contact.pairs.Touch`), dt = 0.01 s, 2 s: aligned, and each box
   shifted 2 mm along x from the one below. Reported: the largest displacement of a box's
   centre from its start (the issue's bar for a stack: 1 mm).
 
 ``iterations_median`` and ``iterations_max`` are over every step of the scenes above (the
 mu_s = mu_k run apart); ``broad_phase_share`` is the time of choosing a step's rows
-(:meth:`~softbody.pairs.Touch.select`: the broad phase, :mod:`softbody.broad_phase`, and
+(:meth:`~softbody.contact.pairs.Touch.select`: the broad phase, :mod:`softbody.contact.broad_phase`, and
 the nearest of its candidates) over the time of a step of the ``rest`` scene (medians,
 compile excluded).
 """
@@ -41,8 +41,8 @@ def _scene(block_mesh, E_block, mu_s, mu_k, dt, plane=False):
     from softbody.material import Material
     from softbody.meshing.grid import grid_box
     from softbody.model import Options, build
-    from softbody.obstacles import Plane
-    from softbody.pairs import Touch
+    from softbody.contact.obstacles import Plane
+    from softbody.contact.pairs import Touch
     from softbody.scene import SoftBody
 
     options = Options(dt=dt, tol=1e-8, max_iter=10000)
@@ -138,7 +138,7 @@ def _stack(shift: float, quick: bool) -> dict:
     from softbody.material import Material
     from softbody.meshing.grid import grid_box
     from softbody.model import Options, build, initial_state
-    from softbody.pairs import Touch
+    from softbody.contact.pairs import Touch
     from softbody.scene import SoftBody
     from softbody.simulate import rollout
 

@@ -4,11 +4,11 @@ For each mesh (a structured grid box and the example robots of
 :mod:`softbody.meshing.examples`, each resting on a rough ground plane), Young's modulus
 ``E`` from 1e4 Pa (soft) to 1e7 Pa (stiff) (``nu`` = 0.45, density 1000 kg/m^3) and time
 step ``dt`` from 1/1000 s to 1/30 s, and for each splitting ``D`` of
-:mod:`softbody.splitting` (:class:`~softbody.splitting.Naive`, :class:`~softbody.splitting.Diagonal`
-and the default :class:`~softbody.splitting.ScaledDiagonal`), it measures
+:mod:`softbody.contact.splitting` (:class:`~softbody.contact.splitting.Naive`, :class:`~softbody.contact.splitting.Diagonal`
+and the default :class:`~softbody.contact.splitting.ScaledDiagonal`), it measures
 
 - the spectral radius of the splitting's iteration matrix ``(M/h^2 + D)^{-1} (D - L)``
-  with the projections held fixed (:func:`~softbody.splitting.splitting_spectral_radius`;
+  with the projections held fixed (:func:`~softbody.contact.splitting.splitting_spectral_radius`;
   for the default also the proved bound and ``1 - rho``), and, for reference, that of the
   absolute-row-sum splitting ``D = diag(sum_j |L_ij|)``, which needs the matrix entries
   that an iteration method does not see;
@@ -24,7 +24,7 @@ and the default :class:`~softbody.splitting.ScaledDiagonal`), it measures
   same tolerance, or not converged within the cap.
 
 And :class:`~softbody.contact.Contact` with its active-set iteration on the prefactored
-matrix (``Contact(active_set=ActiveSet())``, :mod:`softbody.active_set`) on the same
+matrix (``Contact(active_set=ActiveSet())``, :mod:`softbody.contact.active_set`) on the same
 first steps: iterations per step (the splitting's check included), whether it converged
 and whether it fell back to the splitting, and its wall time per step against the
 default splitting iteration's, timed in pairs (median of ``REPEATS`` runs each, one after
@@ -49,7 +49,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from softbody.active_set import ActiveSet
+from softbody.contact.active_set import ActiveSet
 from softbody.contact import Contact
 from softbody.material import Material
 from softbody.meshing import TetMesh, examples
@@ -57,9 +57,9 @@ from softbody.meshing.grid import grid_box
 from softbody.model import Options, build, initial_state, prepare
 from softbody.scene import SoftBody
 from softbody.objective import contact_rows, solve_step, step_objective
-from softbody.obstacles import Plane
+from softbody.contact.obstacles import Plane
 from softbody.solvers import LocalGlobal, StepProblem
-from softbody.splitting import Diagonal, Naive, ScaledDiagonal, _pd_split, _spectral_radius
+from softbody.contact.splitting import Diagonal, Naive, ScaledDiagonal, _pd_split, _spectral_radius
 
 #: name -> splitting, in the order of the figure's panels
 SPLITTINGS = {"naive": Naive(), "diagonal": Diagonal(), "default": ScaledDiagonal()}

@@ -11,8 +11,8 @@ positions ``z`` are the grid with small random offsets, ``h = -G z``, and the po
 before the response are ``x = z + W^-1 G^T lam``. Fixed seed.
 
 Timed, each as the median of repeated calls on the same problem and upstream gradient:
-:func:`softbody.impact_zone.backward_kkt` (assembles and solves the dense
-``(n + m) x (n + m)`` KKT system) and :func:`softbody.impact_zone.backward_qr` (reduced QR of
+:func:`softbody.contact.impact_zone.backward_kkt` (assembles and solves the dense
+``(n + m) x (n + m)`` KKT system) and :func:`softbody.contact.impact_zone.backward_qr` (reduced QR of
 ``W^(-1/2) G^T``, ``O(n m^2)``). Reported per size: the contact count, both times, their
 ratio (``speedup``), and the largest difference between the two backwards' gradients,
 relative to each gradient's largest entry (``max_gradient_difference`` over all sizes).
@@ -82,7 +82,7 @@ def _median_time(function, args, repeats: int) -> tuple[float, object]:
 
 
 def run(out: Path, quick: bool) -> dict:
-    from softbody.impact_zone import backward_kkt, backward_qr
+    from softbody.contact.impact_zone import backward_kkt, backward_qr
 
     sizes, repeats = (SIZES[:1], 3) if quick else (SIZES, 5)
     rng = np.random.default_rng(0)

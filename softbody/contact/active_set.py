@@ -51,7 +51,7 @@ equilibria; the two iterations can pick different ones, and in the crawler examp
 the splitting then needed more than the example's 1000 iterations.
 
 The same map, with its active set frozen at the solution, carries the step's implicit
-derivative (:func:`softbody.fixed_point.fixed_point`): its fixed points are the
+derivative (:func:`softbody.contact.fixed_point.fixed_point`): its fixed points are the
 splitting's, so the derivative is the same, and its linearisation contracts like the
 forward iteration does. ``A`` and ``W`` only precondition the map: at a fixed point the
 map's derivative with respect to them vanishes, so they are held constant.
@@ -65,7 +65,7 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from softbody import anderson
+from softbody.contact import anderson
 from softbody._interfaces import Capabilities
 from softbody.solvers import Solution, StepProblem
 

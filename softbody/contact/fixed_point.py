@@ -6,7 +6,7 @@ the point it returns is wrapped in :func:`fixed_point`, whose custom derivative 
 depends on besides ``x``, hoisted out of ``F``'s closure by :func:`closure_convert`
 (for the contact solver: material and actuator parameters, the state, obstacle poses and
 friction). The linear system is solved by a caller-given solver (the contact solver uses
-Anderson acceleration, :func:`softbody.anderson.linear_solve`, which converges where the
+Anderson acceleration, :func:`softbody.contact.anderson.linear_solve`, which converges where the
 forward map does, its iteration matrix being ``dF/dx``) inside
 :func:`jax.lax.custom_linear_solve`, so reverse mode solves the transposed system.
 

@@ -13,7 +13,7 @@ to solve ``(I - J) u = b`` when ``rho(J) < 1``.
 
 The acceleration is a heuristic with no convergence guarantee of its own: :func:`iterate`,
 the one loop of the contact iterations (the splitting of :class:`softbody.contact.Contact`
-and the active set of :class:`softbody.active_set.ActiveSet`), keeps the best iterate and
+and the active set of :class:`softbody.contact.active_set.ActiveSet`), keeps the best iterate and
 restarts when the residual grows.
 """
 

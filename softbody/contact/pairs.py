@@ -36,7 +36,7 @@ row exists wherever the step could bring the two together. The gap is then a smo
 function of the positions over the step: the triangle's plane, extended beyond its edges
 (a vertex sliding off one triangle onto its neighbour in the same plane stays supported
 for the step). The candidates come from a broad phase over the step's swept boxes
-(:mod:`softbody.broad_phase`: a hashed grid, cost linear in the surfaces' sizes) with a
+(:mod:`softbody.contact.broad_phase`: a hashed grid, cost linear in the surfaces' sizes) with a
 fixed capacity; a step that overflows it ends with ``RESULTS.overflow``, never with
 contacts silently lost.
 
@@ -55,7 +55,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from softbody import broad_phase
+from softbody.contact import broad_phase
 from softbody._interfaces import PairFrame, PairRows
 from softbody._types import SceneError
 
@@ -123,7 +123,7 @@ class Touch(PairRows):
         thickness: the contact distance, m (> 0): a vertex rests this far above the
             other surface.
         capacity: the most candidate (vertex, triangle) pairs the broad phase
-            (:func:`softbody.broad_phase.candidates`) holds per step and direction (static;
+            (:func:`softbody.contact.broad_phase.candidates`) holds per step and direction (static;
             default 64 per surface vertex; the box tests' budget is 4 times it). A step that
             finds more ends with the result code ``RESULTS.overflow`` (a rollout raises,
             naming this fix).

@@ -3,13 +3,13 @@
 **Rows.** Contact is a set of rows (:class:`softbody._interfaces.Rows`): each keeps a
 vertex out of something, with its gap, normal, the velocity of the surface it meets,
 friction coefficients and restitution (:class:`softbody._interfaces.Frame`). The scene's
-obstacles (signed distance functions, :mod:`softbody.obstacles`) are one generator of rows
-(:class:`softbody.obstacles.ObstacleRows`); ``build(rows=...)`` adds others (a plane that
+obstacles (signed distance functions, :mod:`softbody.contact.obstacles`) are one generator of rows
+(:class:`softbody.contact.obstacles.ObstacleRows`); ``build(rows=...)`` adds others (a plane that
 holds a few vertices, ...). Where several rows reach a vertex the solver keeps the deepest;
 it sees nothing of the generators but their rows.
 
 **Rows between bodies.** A pair generator (:class:`~softbody._interfaces.PairRows`, e.g.
-:class:`softbody.pairs.Touch`) gives rows that couple a vertex with a triangle of another
+:class:`softbody.contact.pairs.Touch`) gives rows that couple a vertex with a triangle of another
 surface (:class:`~softbody._interfaces.PairFrame`: up to 4 vertices, weights ``(1, -u, -v,
 -w)``), chosen once per step. Their forces act on both sides, so they cannot be projected
 vertex by vertex: the iterate carries each row's force ``f_r`` (N, on its touching vertex,
@@ -27,9 +27,9 @@ velocity-space splitting iteration::
 
     (M + h^2 D) v^{k+1} = f - h^2 (L - D) v^k + xi^k
 
-``A = M/h^2 + L`` is the PD matrix, ``D`` a diagonal splitting (:mod:`softbody.splitting`:
-:class:`~softbody.splitting.Naive`: 0, :class:`~softbody.splitting.Diagonal`: ``diag(L)``,
-the default :class:`~softbody.splitting.ScaledDiagonal`: ``2 diag(L)``, whose convergence
+``A = M/h^2 + L`` is the PD matrix, ``D`` a diagonal splitting (:mod:`softbody.contact.splitting`:
+:class:`~softbody.contact.splitting.Naive`: 0, :class:`~softbody.contact.splitting.Diagonal`: ``diag(L)``,
+the default :class:`~softbody.contact.splitting.ScaledDiagonal`: ``2 diag(L)``, whose convergence
 is proved in its docstring) and ``xi`` the contact impulse, *added* to the right-hand
 side. The right-hand side ``f`` is PD's: each iteration first runs PD's local
 step at the current iterate (the projections), which gives ``grad Phi``, so that one
@@ -54,14 +54,14 @@ At a fixed point ``x^{k+1} = x^k`` the force residual ``grad Phi - r`` (``r = xi
 contact forces) vanishes, ``r`` lies in the friction cone and every contact vertex is on
 the surface: the step's equilibrium. With the projections held fixed and no contact
 active, the iteration matrix is ``T = P^{-1} (D - L) = (M + h^2 D)^{-1} h^2 (D - L)``, the
-matrix whose spectral radius :func:`softbody.splitting.splitting_spectral_radius` measures.
+matrix whose spectral radius :func:`softbody.contact.splitting.splitting_spectral_radius` measures.
 
 **The fast iteration.** ``Contact(active_set=ActiveSet())`` first runs
-:class:`~softbody.active_set.ActiveSet`, an active-set iteration on the prefactored PD
+:class:`~softbody.contact.active_set.ActiveSet`, an active-set iteration on the prefactored PD
 matrix whose fixed point is this map's, exactly; the map then checks its result in one
 evaluation and finishes the step where it stopped short (``StepInfo.fallback``). The
 implicit derivative is taken through the fast map then (see
-:mod:`softbody.active_set`). It is not the default yet: see that module for what it
+:mod:`softbody.contact.active_set`). It is not the default yet: see that module for what it
 costs and where it falls short. Scenes with a skeleton cannot use it (reduced
 coordinates have no vertex Delassus operator yet).
 
@@ -76,9 +76,9 @@ Scheme, convergence criterion and costs of the splitting iteration:
 * Convergence: ``|grad Phi(x^k) - r^k| = |P (x^{k+1} - x^k)| <= threshold`` over the free
   degrees of freedom, the core's force tolerance (``Options.tol``/``atol``); at most
   ``max_iter`` iterations. ``Solution.gnorm`` is that residual.
-* Anderson acceleration (``history`` > 0, :mod:`softbody.anderson`) of the fixed-point
+* Anderson acceleration (``history`` > 0, :mod:`softbody.contact.anderson`) of the fixed-point
   map, weighted by ``sqrt(P)``, with restarts when the residual grows tenfold over the best
-  one; the plain map is contracting (see :class:`~softbody.splitting.ScaledDiagonal`), the
+  one; the plain map is contracting (see :class:`~softbody.contact.splitting.ScaledDiagonal`), the
   acceleration is a safeguarded heuristic on top. ``history=0`` runs the plain splitting
   iteration of the design. To a relative residual of 1e-6 on the first step of a resting
   342-vertex gmsh cube (soft ``E`` = 1e4 Pa, ``h`` = 1/30 s) the plain iteration
@@ -93,9 +93,9 @@ Scheme, convergence criterion and costs of the splitting iteration:
 
 **Gradients through contact.** The solve is never differentiated. The positions it
 returns, a fixed point ``x* = F(x*; theta)`` of the map above, carry the implicit
-derivative of :func:`softbody.fixed_point.fixed_point` (with the contact state of ``x*``
+derivative of :func:`softbody.contact.fixed_point.fixed_point` (with the contact state of ``x*``
 held fixed), whose linear system is solved by the same Anderson iteration; see
-:mod:`softbody.fixed_point` for what it sees and what it costs. ``theta`` is everything
+:mod:`softbody.contact.fixed_point` for what it sees and what it costs. ``theta`` is everything
 the step depends on: material and actuator parameters, the state, obstacle poses and
 friction.
 """
@@ -111,175 +111,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from softbody import anderson
-from softbody.active_set import ActiveSet
-from softbody.fixed_point import closure_convert, fixed_point
-from softbody.obstacles import norm, unit
-from softbody._interfaces import Capabilities, ContactSweep, Coordinates, Frame, PairFrame, PairRows, Rows
+from softbody._interfaces import Capabilities, ContactSweep, Coordinates, Frame
+from softbody.contact import anderson
+from softbody.contact.active_set import ActiveSet
+from softbody.contact.fixed_point import closure_convert, fixed_point
+from softbody.contact.law import (_FAR, CONTACT_STATES, SLIDING_SPEED, _contact_state, _contact_step, _pair_update,
+                                  _positions, _spread, _tangential)
+from softbody.contact.obstacles import norm
+from softbody.contact.rows import _frames, _Pairs
+from softbody.contact.splitting import Naive, ScaledDiagonal, Splitting
 from softbody.solvers import NonlinearSolver, Solution, StepProblem
-from softbody.splitting import Naive, ScaledDiagonal, Splitting
 
 __all__ = ["CONTACT_STATES", "Contact", "ContactMap"]
-
-#: The contact states that :meth:`Contact.report` gives, by code.
-CONTACT_STATES = ("none", "stick", "slide")
-
-# m/s: the tangential speed relative to the obstacle above which a vertex of a rigid part
-# (a rigid body, a bone) counts as sliding at a step's start and meets the kinetic cone
-# only. With mu_s > mu_k the static cone's threshold is a hysteresis: corners of one rigid
-# part, coupled through its motion, can flip between sticking and sliding without end in
-# the same step (a tumbling brick's impact stalled at a residual of 1e-5-1e-4 with every
-# history length); a contact already sliding has no static friction to lose. Resting
-# contacts (drift 1e-8 m in 0.4 s, 2.5e-8 m/s) stay far below it.
-SLIDING_SPEED = 1e-4
-
-# m: the gap of a point on which a row generator puts no row (its frame's phi is inf there):
-# finite, so that products with it in the contact step stay finite.
-_FAR = 1e30
-
-
-# --------------------------------------------------------------------------------------
-# The per-vertex contact step
-# --------------------------------------------------------------------------------------
-
-
-def _frames(rows, points, index, time) -> Frame:
-    """Per point, the deepest of the rows that the scene's generators of vertex rows
-    (:class:`~softbody._interfaces.Rows`) put on it.
-
-    Arguments:
-        rows: ``((generator, params), ...)`` of the step (:attr:`StepProblem.rows`); pair
-            generators among them are not asked here (see :meth:`_Pairs.frame`).
-        points: ``(m, 3)`` trial positions of the vertices ``index`` ``(m,)``; time: s.
-
-    Returns:
-        A :class:`~softbody._interfaces.Frame` of ``m`` rows; a point no generator reaches
-        has a gap of ``_FAR``.
-    """
-    frames = [frame._replace(phi=jnp.minimum(frame.phi, _FAR))  # no row: far away, finite
-              for frame in (generator.frame(points, index, params, time)
-                            for generator, params in rows if isinstance(generator, Rows))]
-    if not frames:  # pair rows alone
-        m, zero = points.shape[0], jnp.zeros(points.shape[0], points.dtype)
-        return Frame(jnp.full(m, _FAR, points.dtype), jnp.zeros_like(points), jnp.zeros_like(points), zero, zero,
-                     zero)
-    return Frame.deepest(frames)
-
-
-class _Pairs(NamedTuple):
-    """The pair rows of one step: ``((generator, params, selection), ...)`` (the selection
-    made once at the step's start, :meth:`~softbody._interfaces.PairRows.select`)."""
-
-    rows: tuple
-
-    @staticmethod
-    def select(problem: StepProblem, x_end) -> "_Pairs":
-        """The rows that a step ending at ``x_end`` ``(n, 3)`` meets (not differentiated)."""
-        x_end = jax.lax.stop_gradient(x_end)
-        return _Pairs(tuple((generator, params, generator.select(problem.x_n, x_end, params))
-                            for generator, params in problem.rows if isinstance(generator, PairRows)))
-
-    @property
-    def size(self) -> int:
-        return sum(generator.size for generator, _, _ in self.rows)
-
-    @property
-    def selection(self) -> tuple:
-        return tuple(selection for _, _, selection in self.rows)
-
-    def chosen(self, selection) -> "_Pairs":
-        """These generators with the selection ``selection`` (as :attr:`selection` gives)."""
-        return _Pairs(tuple((g, p, s) for (g, p, _), s in zip(self.rows, selection)))
-
-    def frame(self, x) -> PairFrame:
-        """The rows' :class:`~softbody._interfaces.PairFrame` at positions ``x`` ``(n, 3)``
-        (gaps clamped to ``_FAR``)."""
-        frames = [generator.frame(x, selection, params) for generator, params, selection in self.rows]
-        frame = PairFrame(*(jnp.concatenate(column) for column in zip(*frames)))
-        return frame._replace(phi=jnp.minimum(frame.phi, _FAR))
-
-    @property
-    def overflow(self):
-        """Whether some generator's search for its rows overflowed its capacity."""
-        return functools.reduce(jnp.logical_or, (selection[1] for selection in self.selection), jnp.asarray(False))
-
-    def gap(self, x):
-        """The smallest gap of the rows at ``x`` (``_FAR`` without rows)."""
-        return jnp.min(self.frame(x).phi) if self.rows else jnp.asarray(_FAR, x.dtype)
-
-
-def _spread(frame: PairFrame, force, n: int):
-    """``(n, 3)``: the rows' forces ``force`` ``(m, 3)`` (each on its touching vertex) on the
-    vertices, by the rows' weights (the reactions on the touched triangles included)."""
-    return jnp.zeros((n, 3), force.dtype).at[frame.vertices.ravel()].add(
-        (frame.weights[:, :, None] * force[:, None, :]).reshape(-1, 3))
-
-
-def _pair_update(frame: PairFrame, force, z, x_n, v_n, h, compliance):
-    """One projected Jacobi update of the pair rows' forces ``force`` ``(m, 3)`` (N, world
-    frame, on each row's touching vertex) at trial positions ``z`` ``(n, 3)``.
-
-    Each row's force is corrected by what closes its gap and cancels its relative slip
-    through the row's compliance ``W = sum_a w_a^2 c_a / P_a`` (``compliance`` ``(n, 1)``:
-    ``c_a / P_a``, the vertex's sweep compliance times the number of rows on it, zero on
-    held vertices), then projected on the friction cone: normal part ``>= 0``; stick if
-    the tangential part fits the static cone, else ``mu_k`` times the normal part against
-    the slip. At a fixed point (``force`` unchanged) every row is complementary: a
-    positive normal force on a closed gap (at the restitution's target), a zero force on
-    an open one, and Coulomb's law tangentially.
-    """
-    live = frame.phi < _FAR
-    w = frame.weights[:, :, None]  # (m, 4, 1)
-    normal = frame.normal
-    W = jnp.sum(frame.weights**2 * compliance[frame.vertices, 0], axis=1)  # (m,)
-    W = jnp.where(live & (W > 0), W, 1.0)
-    v_rel = jnp.sum(w * v_n[frame.vertices], axis=1)
-    approach = jnp.sum(v_rel * normal, axis=-1)
-    depth = h * frame.restitution * jnp.maximum(-approach, 0.0) - frame.phi
-    f_n = jnp.sum(force * normal, axis=-1)
-    f_n_new = jnp.maximum(f_n + depth / W, 0.0)
-    slip = _tangential(jnp.sum(w * (z[frame.vertices] - x_n[frame.vertices]), axis=1), normal)
-    trial = _tangential(force, normal) - slip / W[:, None]
-    stick = norm(trial) <= frame.mu_s * f_n_new
-    f_t = jnp.where(stick[:, None], trial, (frame.mu_k * f_n_new)[:, None] * unit(trial, jnp.zeros_like(trial)))
-    return jnp.where(live[:, None], f_n_new[:, None] * normal + f_t, 0.0)
-
-
-def _contact_step(y, x_n, v_n, h, frame, free):
-    """The per-vertex contact step (positions form): returns the corrected positions.
-
-    ``y`` ``(n, 3)`` are the sweep's positions, ``frame`` the nearest obstacle's
-    ``(phi, normal, velocity, mu_s, mu_k, e)`` at ``y``, ``free`` ``(n, 1)``. The impulse on
-    vertex ``i`` is ``h P_i (x_i - y_i)``; ``P_i`` scales its normal and tangential parts
-    alike, so the cone test needs displacements only.
-    """
-    touching, _, correction = _contact_state(y, x_n, v_n, h, frame, free)
-    return y + jnp.where(touching[:, None], correction, 0.0)
-
-
-def _positions(x, n: int):
-    """The positions ``(n, 3)``: the first ``n`` rows of a contact iterate ``(n + e, 3)``."""
-    return x if x.shape[0] == n else x[:n]
-
-
-def _tangential(v, normal):
-    """The part of ``v`` ``(n, 3)`` along the obstacle, orthogonal to the unit ``normal`` ``(n, 3)``."""
-    return v - jnp.sum(v * normal, axis=-1, keepdims=True) * normal
-
-
-def _contact_state(y, x_n, v_n, h, frame, free):
-    """The contact step's decision per vertex: ``(touching (n,), stick (n,), correction (n, 3))``
-    (arguments as for :func:`_contact_step`)."""
-    phi, normal, vel, mu_s, mu_k, e = frame
-    approach = jnp.sum((v_n - vel) * normal, axis=-1)  # < 0: moving into the obstacle
-    depth = h * e * jnp.maximum(-approach, 0.0) - phi  # normal correction that reaches the target
-    touching = (depth > 0) & (free[:, 0] > 0)
-    slip_t = _tangential(y - x_n - h * vel, normal)  # displacement relative to the obstacle's material
-    slip_len = norm(slip_t)
-    stick = slip_len <= mu_s * depth
-    slide = -(mu_k * depth)[:, None] * unit(slip_t, jnp.zeros_like(slip_t))
-    correction = depth[:, None] * normal + jnp.where(stick[:, None], -slip_t, slide)
-    return touching, stick, correction
 
 
 # --------------------------------------------------------------------------------------
@@ -291,7 +134,7 @@ def _contact_state(y, x_n, v_n, h, frame, free):
 class Contact:
     """Implicit-Euler steps with contact and dry friction by the splitting iteration
     (optionally after an active-set iteration on the prefactored matrix,
-    :mod:`softbody.active_set`).
+    :mod:`softbody.contact.active_set`).
 
     The contact constraint's part of a composed step (:class:`~softbody.solvers.Step`),
     chosen by :func:`~softbody.model.build` for a scene with contact rows, obstacles or others (set
@@ -303,12 +146,12 @@ class Contact:
     steps that touch nothing run the step's contact-free solver in them.
 
     Attributes:
-        splitting: the :class:`~softbody.splitting.Splitting` ``D`` (default
-            :class:`~softbody.splitting.ScaledDiagonal`, whose convergence is proved;
-            :class:`~softbody.splitting.Diagonal` and :class:`~softbody.splitting.Naive`
+        splitting: the :class:`~softbody.contact.splitting.Splitting` ``D`` (default
+            :class:`~softbody.contact.splitting.ScaledDiagonal`, whose convergence is proved;
+            :class:`~softbody.contact.splitting.Diagonal` and :class:`~softbody.contact.splitting.Naive`
             for studies).
         active_set: ``None`` (default) for the splitting iteration alone, or the fast
-            iteration to run before it (:class:`~softbody.active_set.ActiveSet`; not in
+            iteration to run before it (:class:`~softbody.contact.active_set.ActiveSet`; not in
             scenes with a skeleton).
         history: Anderson history length (0: the plain splitting iteration).
         restart: Anderson restarts when the residual exceeds ``restart`` times the best
@@ -319,7 +162,7 @@ class Contact:
         adjoint_tol, adjoint_max_iter: relative tolerance and iteration cap of the linear
             solve of the implicit derivative (Anderson-accelerated, like the forward solve).
         blocks: ``((start, stop), ...)`` vertex ranges whose Anderson coefficients are
-            separate (:func:`softbody.anderson.mix`); :func:`~softbody.model.build` sets one
+            separate (:func:`softbody.contact.anderson.mix`); :func:`~softbody.model.build` sets one
             per body in a scene of several, so that bodies that do not touch each other
             converge as each would alone. ``()``: one set for all.
 
@@ -335,7 +178,7 @@ class Contact:
     capabilities = Capabilities(
         refuses={"partly held vertices": "holds vertices in all three components only (its contact step projects whole "
                                          "vertices)"},
-        instead="model the support as an obstacle (softbody.obstacles.Plane) or clamp the vertices fully")
+        instead="model the support as an obstacle (softbody.contact.obstacles.Plane) or clamp the vertices fully")
 
     splitting: Splitting = field(default_factory=ScaledDiagonal)
     active_set: ActiveSet | None = None
@@ -594,7 +437,7 @@ class Contact:
         return jnp.where(touched[:, None], g, force), jnp.maximum(state, row_state)
 
     def _law(self, problem: StepProblem):
-        """The per-vertex contact step on some vertices, as :class:`~softbody.active_set.ActiveSet` takes it."""
+        """The per-vertex contact step on some vertices, as :class:`~softbody.contact.active_set.ActiveSet` takes it."""
         h = problem.dt
         t_end = problem.time + h
 

@@ -1,0 +1,331 @@
+"""A skeleton's reduced coordinates: the step solved over the soft vertices and the joint
+coordinates, with and without contact (see :mod:`softbody.skeleton`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from softbody._interfaces import Capabilities, ContactSweep, Coordinates
+from softbody.skeleton.condense import SchurFactor, _held, _solve_reduced, schur_factor
+from softbody.skeleton.joints import SkeletonError
+from softbody.skeleton.rig import Rig
+from softbody.solvers import LBFGS, LocalGlobal, Solution, empty_history, iterate, lbfgs_direction, store_pair
+
+Array = jax.Array
+
+
+@dataclass(frozen=True)
+class Reduced(Coordinates):
+    """A skeleton's reduced coordinates: the soft vertices and the joint coordinates ``z``,
+    bones placed by ``FK(z)`` (see the module docstring). :func:`~softbody.model.build`
+    chooses them for a scene with a skeleton.
+
+    **Without contact** (:meth:`minimize`) each iteration evaluates ``Phi`` and its gradient
+    at ``x = assemble(x_free, FK(z))``, forms the reduced gradient ``(g_f, B^T g_r)``, takes
+    the L-BFGS direction in the reduced coordinates (the solver's ``history`` pairs;
+    :class:`~softbody.solvers.LocalGlobal` keeps none) with the reduced PD solve
+    (:func:`schur_direction`) as its initial inverse Hessian, and backtracks (halving)
+    until Armijo's condition holds. The PD matrix holds the elastic and inertial terms
+    only; the quasi-Newton pairs add the curvature of the rest, chiefly joint servos,
+    whose stiffness in joint space can exceed the condensed matrix's by orders of
+    magnitude (a servo of 50 N m/rad on a soft arm: 200 plain reduced-PD iterations ended
+    at a residual of 8.6e-4, the L-BFGS iteration converges). A direction that does not
+    descend is replaced by the plain reduced PD direction. Updates stay on the manifold
+    (:meth:`Rig.retract`); a joint at a limit whose gradient pushes it outward is held for
+    that iteration. The step starts from ``z`` fitted to the inertial prediction
+    ``x_n + h v_n`` of the bones (:meth:`Rig.coordinates`), so no state beyond the
+    positions is needed. The condensation (:func:`schur_factor`) depends on the PD matrix
+    only: it is made once per rollout (:meth:`prepare`). The PD matrix is prefactored with
+    the true volume weight (``volume_weight = 1``), for which the PD model majorises the
+    elastic energy.
+
+    **With contact** (:meth:`contact_sweep`, run by :class:`~softbody.contact.Contact`)
+    each iteration fits ``z`` to the iterate's bones and places them by ``FK(z)``, evaluates
+    the local step, then sweeps
+
+    * the soft vertices as in vertex coordinates: ``y = x - P^{-1} g``, followed by the
+      per-vertex contact step (stick or slide, non-penetration);
+    * the skeleton with its block of the same splitting:
+      ``z <- retract(z, -(B^T P_b B)^{-1} B^T g_b)``, ``P_b`` the bone vertices' ``P``,
+      ``B`` the FK Jacobian; a joint at a limit pushed outward is held.
+
+    Convergence carries over from :class:`~softbody.contact.splitting.ScaledDiagonal`'s theorem:
+    with ``T = diag(I, B)`` the reduced matrices are ``T^T L T`` and ``T^T (M/h^2 + D) T``,
+    the latter block diagonal (``D`` is diagonal), and ``L <= 4 diag(L)`` gives
+    ``T^T L T <= 2 T^T D T``, so the frozen-projection iteration matrix again has its
+    eigenvalues in ``[-beta, beta]``, ``beta < 1`` (``B^T M_b B > 0`` as every bone has a
+    volume). The residual is ``|P (x_new - x)|`` over the soft vertices together with the
+    reduced force ``|B^T g_b|`` of the joints free to move: zero exactly at the step's
+    equilibrium with contact. Contact acts on the soft vertices: bones are meant to lie
+    inside the skin.
+
+    Gradients: both adjoints. :class:`~softbody.gradients.Implicit` (the default) uses the
+    reduced coordinates as its chart (:meth:`implicit_chart`): the step's solution is
+    stationary in ``(x_free, z)``, not in the bone vertices (they carry the joints'
+    constraint forces), and the adjoint system is preconditioned with the same Schur
+    condensation as the forward step. :class:`~softbody.gradients.Unrolled`
+    differentiates the iterations as they ran. With contact the returned positions carry
+    the implicit derivative of the contact fixed point (tested against central
+    differences on a jointed body sliding down an incline, d slide / d mu_k).
+
+    Attributes:
+        rig: the :class:`Rig` (the scene's skeleton bound to its mesh).
+        backtracks: the most halvings of a step (static).
+
+    Raises:
+        SkeletonError: a bad attribute.
+    """
+
+    solvers = (LBFGS, LocalGlobal)
+    capabilities = Capabilities(
+        refuses={"partly held vertices": "holds vertices in all three components only (its reduced coordinates move "
+                                         "whole vertices)",
+                 "pair contact": "does not carry contact rows between bodies yet (its contact sweep moves bones and "
+                                 "rigid bodies by their obstacle rows alone)"},
+        instead="fix them with fixed=<selection> (or a Fix with axes='xyz'), or weld a bone with a root Fixed() joint")
+    rig: Rig
+    backtracks: int = 8
+    contact_sweeps: int = 10
+
+    def __post_init__(self):
+        if not isinstance(self.rig, Rig):
+            raise SkeletonError(f"Reduced.rig must be a Rig (Skeleton.bind(mesh)), got {type(self.rig).__name__}")
+        if int(self.backtracks) != self.backtracks or self.backtracks < 0:
+            raise SkeletonError(f"Reduced.backtracks must be an integer >= 0, got {self.backtracks!r}")
+
+    def volume_weight(self, solver) -> float:
+        return 1.0
+
+    def prepare(self, model, data, factor) -> SchurFactor:
+        """The :class:`SchurFactor` of the scene's PD matrix."""
+        return schur_factor(model.linear_solver, model.pattern, data, self.rig)
+
+    def implicit_chart(self, prepared, x, free):
+        """The reduced coordinates ``d = (d_f (n, 3) on the soft free vertices, d_z (n_dofs,))``
+        about the solution ``x``: ``embed(d)`` moves the soft vertices by ``d_f`` and the
+        bones to ``FK(retract(z, d_z))``; joints at a limit are held (their ``d_z`` rows
+        are masked out). The preconditioner solves the reduced PD system (:func:`schur_direction`).
+        See :meth:`softbody.solvers.Step.implicit_chart`."""
+        rig, n, k = self.rig, x.shape[0], self.rig.n_dofs
+        bone = jnp.asarray(rig.bone)
+        soft = free * (1.0 - rig.is_bone)
+        z = rig.coordinates(x[bone])
+        pose = rig.pose(z)
+        value = rig.joint_values(z)
+        held = ((value <= jnp.asarray(rig.lower)) | (value >= jnp.asarray(rig.upper))).astype(x.dtype)
+
+        def split(d):
+            return d[:3 * n].reshape(n, 3) * soft, d[3 * n:] * (1.0 - held)
+
+        def embed(d):
+            d_f, d_z = split(d)
+            return (x + d_f).at[bone].set(rig.positions(rig.retract(z, d_z)))
+
+        def solve(r):
+            r_f, r_z = split(r)
+            d, d_z = _solve_reduced(prepared, rig, pose, r_f, r_z, held)
+            return jnp.concatenate([(d * soft).ravel(), d_z * (1.0 - held)])
+
+        return embed, solve, 3 * n + k
+
+    def contact_sweep(self, problem, p, law):
+        """The soft vertices take the per-vertex contact step; the skeleton sweeps its block
+        with the contact forces on its skin (see the class docstring). See
+        :meth:`softbody._interfaces.Coordinates.contact_sweep`."""
+        rig = self.rig
+        n, bone, skin = rig.n_vertices, jnp.asarray(rig.bone), rig.skin
+        p_bone = p[bone, 0]
+        owners = np.asarray(rig.bone)[skin]
+        index = jnp.asarray(owners)
+        tree = jnp.asarray(rig.tree[rig.vertex_link[skin]])
+        valid = problem.free[index, 0] > 0
+
+        def place(x):
+            x = x if x.shape[0] == n else x[:n]
+            z = rig.coordinates(x[bone])
+            pose = rig.pose(z)
+            return x.at[bone].set(pose.x), (z, pose)
+
+        def inverse(jac, move):
+            """``K^-1`` of the sweep's block ``K = B^T P_b B``, zero on the held dofs."""
+            mask = move[:, None] * move[None, :]
+            k_z = jnp.einsum("vik,v,vil->kl", jac, p_bone, jac) * mask
+            return jnp.linalg.inv(k_z + jnp.diag(1.0 - move)) * mask
+
+        def delassus_diagonal(b_skin, k_inv):
+            """``(c, 3)`` the diagonal of ``W = B_C K^-1 B_C^T`` (the skin's Delassus operator)."""
+            return jnp.maximum(jnp.einsum("cik,kl,cil->ci", b_skin, k_inv, b_skin), 0.0)
+
+        def forces(x):
+            return scale * x[n:]
+
+        if not len(skin):
+            def sweep(x, x_new, g, aux):
+                z, pose = aux
+                jac = rig._jacobian(pose)  # (n_b, 3, k)
+                g_z = rig.reduce(pose, g[bone])
+                move = 1.0 - _held(rig, z, g_z)
+                k_z = jnp.einsum("vik,v,vil->kl", jac, p_bone, jac) * move[:, None] * move[None, :]
+                d_z = jnp.linalg.solve(k_z + jnp.diag(1.0 - move), g_z * move)
+                return x_new.at[bone].set(rig.positions(rig.retract(z, -d_z))), g_z * move
+
+            scale = jnp.zeros((0, 1), p.dtype)
+            return ContactSweep(problem.free * (1.0 - rig.is_bone), place, sweep, owners, scale, forces)
+
+        # The extra rows hold the skin's contact forces over the effective mass of each skin
+        # vertex at the step's start (so that they are displacements, as the other rows).
+        jac_n = rig._jacobian(rig.pose(rig.coordinates(problem.x_n[bone])))
+        w_n = delassus_diagonal(jac_n[skin], inverse(jac_n, jnp.ones(rig.n_dofs, p.dtype)))
+        scale = (3.0 / jnp.maximum(w_n.sum(axis=1), 1e-300))[:, None]
+
+        def sweep(x, x_new, g, aux):
+            z, pose = aux
+            force = forces(x)  # (c, 3) contact forces on the skin
+            jac = rig._jacobian(pose)
+            b_skin = jac[skin]
+            g_z = rig.reduce(pose, g[bone])
+            net = g_z - jnp.einsum("cik,ci->k", b_skin, force)
+            move = 1.0 - _held(rig, z, net)
+            k_inv = inverse(jac, move)
+            # The contact forces by relaxed projected Jacobi sweeps on the Delassus operator
+            # W (the body's motion linearised): each skin vertex takes the per-vertex contact
+            # step, with the effective mass 1 / w_i of its diagonal block (w_i its mean
+            # entry), from where the body's sweep puts it less its own force's displacement;
+            # the force moves to that step's force by the fraction w_i / bound_i, with bound_i
+            # >= the absolute row sums of W over the vertices pushing or about to touch (a
+            # Gershgorin bound from |W_ij| <= sqrt(W_ii W_jj), per tree), so that the sweeps
+            # converge for frictionless contact as the splitting does. At a fixed point the
+            # body is in equilibrium with the forces, and each skin vertex satisfies the
+            # contact law (on the surface, inside the cone, sliding against its slip, the
+            # static cone's threshold measured with 1 / w_i as the splitting measures it with
+            # P; a skin vertex sliding at the step's start meets the kinetic cone only, see
+            # softbody.contact.law.SLIDING_SPEED): the fixed point does not depend on the bound.
+            root = jnp.sqrt(delassus_diagonal(b_skin, k_inv))  # (c, 3)
+            w = jnp.sum(root**2, axis=1) / 3.0
+
+            def update(force, _):
+                moved = pose.x[skin] - jnp.einsum("cik,k->ci", b_skin,
+                                                  k_inv @ (g_z - jnp.einsum("cik,ci->k", b_skin, force)))
+                near, _, _, _ = law(moved, index, valid)
+                active = near | jnp.any(force != 0, axis=1)
+                reach = jax.ops.segment_sum(jnp.where(active, root.sum(axis=1), 0.0), tree, len(rig.links))[tree]
+                bound = root.max(axis=1) * (reach + jnp.where(active, 0.0, root.sum(axis=1)))
+                touching, _, correction, _ = law(moved - force * w[:, None], index, valid, kinetic=True)
+                target = jnp.where(touching[:, None], correction, 0.0) / jnp.where(w > 0, w, 1.0)[:, None]
+                fraction = jnp.where(bound > 0, w / jnp.where(bound > 0, bound, 1.0), 0.0)
+                return force + fraction[:, None] * (target - force), None
+
+            force_new, _ = jax.lax.scan(update, force, None, length=self.contact_sweeps)
+            d_z = k_inv @ (g_z - jnp.einsum("cik,ci->k", b_skin, force_new))
+            placed = x_new.at[bone].set(rig.positions(rig.retract(z, -d_z)))
+            residual = jnp.concatenate([net * move, (force_new - force).ravel()])
+            return jnp.concatenate([placed, force_new / scale]), residual
+
+        return ContactSweep(problem.free * (1.0 - rig.is_bone), place, sweep, owners, scale, forces)
+
+    def minimize(self, solver, problem, x0, q0, threshold, max_iter, unrolled=False):
+        """Solve one step without contact (see the class docstring); ``unrolled=False``
+        runs a ``while_loop`` (forward mode only), otherwise a fixed-trip loop that reverse
+        mode differentiates as it ran.
+
+        Raises:
+            SkeletonError: ``problem.prepared`` is not this rig's condensation.
+        """
+        if not isinstance(problem.prepared, SchurFactor):
+            raise SkeletonError("reduced coordinates need their per-rollout condensation in problem.prepared; build "
+                                "the step problem with softbody.model.prepare and softbody.objective.solve_step")
+        history = solver.history if isinstance(solver, LBFGS) else 0
+        return self._solve(problem, x0, q0, threshold, max_iter, unrolled, history)
+
+    def _solve(self, problem, x0, q0, threshold, max_iter, unrolled, m):
+        """The iterations (see the class docstring)."""
+        rig, evaluate = self.rig, problem.evaluate
+        factor = problem.prepared
+        bone = jnp.asarray(rig.bone)
+        soft = 1.0 - rig.is_bone
+        n = x0.shape[0]
+
+        def reduced(g, pose, z):
+            """The reduced gradient ``B^T g_r``, the dofs held at a limit this iteration, and
+            the norm of ``(g_f, B^T g_r)`` over the dofs that may move."""
+            g_z = rig.reduce(pose, g[bone])
+            locked = _held(rig, z, g_z)
+            gnorm = jnp.sqrt(jnp.sum((g * soft) ** 2) + jnp.sum((g_z * (1.0 - locked)) ** 2))
+            return g_z, locked, gnorm
+
+        def flat(v_f, v_z):  # a reduced vector (soft rows, joint tangents) as one (3 n + k,)
+            return jnp.concatenate([(v_f * soft).reshape(-1), v_z])
+
+        def unflat(v):
+            return v[:3 * n].reshape(n, 3), v[3 * n:]
+
+        def direction(g, pose, g_z, locked, lbfgs):
+            """``(d, d_z)``: the step is ``x - alpha d``, ``z - alpha d_z`` (bone rows of
+            ``d`` unused: the bones are placed by ``FK``)."""
+            move = 1.0 - locked
+
+            def precondition(r):
+                r_f, r_z = unflat(r)
+                d, d_z = _solve_reduced(factor, rig, pose, r_f, r_z * move, locked)
+                return flat(d, d_z * move)
+
+            g_r = flat(g, g_z * move)
+            if m == 0:
+                return unflat(precondition(g_r))
+            d_f, d_z = unflat(-lbfgs_direction(g_r, *lbfgs, precondition))
+            d = flat(d_f, d_z * move)
+            return unflat(jax.lax.cond(jnp.sum(g_r * d) > 0, lambda: d, lambda: precondition(g_r)))
+
+        z0 = rig.coordinates(x0[bone])
+        pose0 = rig.pose(z0)
+        x0 = x0.at[bone].set(pose0.x)
+        phi0, g0, q0 = evaluate(x0, q0)
+
+        def cond(c):
+            return (c[8] > threshold) & (c[10] < max_iter)
+
+        def body(c):
+            x, z, q, phi, g, pose, g_z, locked, _, evals, k, lbfgs = c
+            d, d_z = direction(g, pose, g_z, locked, lbfgs)
+            slope = jnp.sum((g * soft) * d) + jnp.sum(g_z * d_z)  # -dPhi/dalpha along (x - alpha d, z - alpha d_z)
+
+            def trial(alpha):
+                z_t = rig.retract(z, -alpha * d_z)
+                pose_t = rig.pose(z_t)
+                x_t = (x - alpha * d).at[bone].set(pose_t.x)
+                phi_t, g_t, q_t = evaluate(x_t, q)
+                return x_t, z_t, q_t, phi_t, g_t, pose_t
+
+            def rejected(t):
+                alpha, tries, (_, _, _, phi_t, _, _) = t
+                return (~(phi_t <= phi - 1e-4 * alpha * slope + 1e-14 * jnp.abs(phi))) & (tries < self.backtracks)
+
+            def halve(t):
+                alpha, tries, _ = t
+                return alpha / 2, tries + 1, trial(alpha / 2)
+
+            # The search runs no iterations after acceptance (they would halve the accepted step).
+            alpha, tries, (x_new, z_new, q, phi, g_new, pose_new) = iterate(
+                rejected, halve, (jnp.asarray(1.0), jnp.asarray(0), trial(1.0)), self.backtracks,
+                unrolled is not False)
+            g_z_new, locked, gnorm = reduced(g_new, pose_new, z_new)
+            if m:
+                # The pairs leave out the free bodies' dofs, whose block the reduced PD solve
+                # holds exactly (a free rigid body converges in one iteration, to 1e-17): their
+                # later steps and gradient changes are round-off, which would set the quasi-
+                # Newton matrix on them at random, and reverse mode through 1 / (s . y) of
+                # round-off blows up (an unrolled solve beside a soft body).
+                keep = 1.0 - rig.detached_dofs
+                lbfgs = store_pair(lbfgs, flat(x_new - x, rig.step_taken(z, z_new, -alpha * d_z) * keep),
+                                   flat(g_new - g, (g_z_new - g_z) * keep))
+            return (x_new, z_new, q, phi, g_new, pose_new, g_z_new, locked, gnorm, evals + 1 + tries, k + 1,
+                    lbfgs)
+
+        lbfgs = empty_history(m, 3 * n + rig.n_dofs, x0.dtype)
+        init = (x0, z0, q0, phi0, g0, pose0, *reduced(g0, pose0, z0), jnp.asarray(1), jnp.asarray(0), lbfgs)
+        x, _, q, _, _, _, _, _, gnorm, evals, k, _ = iterate(cond, body, init, max_iter, unrolled)
+        return Solution(x, q, k, evals, gnorm)
