@@ -408,9 +408,9 @@ class Coordinates:
         :meth:`softbody.solvers.Step.implicit_chart`); ``None`` for the free vertices."""
         raise NotImplementedError
 
-    def minimize(self, solver, problem, x0, q0, threshold, max_iter: int, unrolled=False):
-        """Minimise the step objective without contact with ``solver`` in these
-        coordinates; returns a :class:`softbody.solvers.Solution`."""
+    def chart(self, problem) -> "Chart":
+        """The :class:`Chart` in which a nonlinear solver minimises the step objective of
+        ``problem`` (a :class:`softbody.solvers.StepProblem`) without contact."""
         raise NotImplementedError
 
     def contact_sweep(self, problem, p, law) -> "ContactSweep":
@@ -429,6 +429,58 @@ class Coordinates:
         Returns:
             A :class:`ContactSweep`.
         """
+        raise NotImplementedError
+
+
+class Chart:
+    """Coordinates in which a nonlinear solver descends on one step's objective ``Phi``.
+
+    Made by :meth:`Coordinates.chart` for a step problem. The solvers of
+    :mod:`softbody.solvers` (L-BFGS, local-global) are written once against it and run in
+    any coordinates. A *point* is the chart's pytree for one iterate (it holds the
+    positions); a *tangent* is an array of the chart's own shape (the free vertices'
+    ``(n, 3)`` for plain coordinates; the soft vertices and joint tangents, flat, for a
+    skeleton's). The solver steps from a point along a tangent ``step`` by :meth:`move`.
+
+    Attributes:
+        backtracks: how often a step that fails Armijo's test is halved before the solver
+            gives up on it (static). Zero where the plain preconditioned step always
+            descends (the PD matrix majorises the objective).
+    """
+
+    backtracks: ClassVar[int] = 0
+
+    def start(self, x0):
+        """The point at positions ``x0`` ``(n, 3)`` (the positions it holds may differ:
+        a skeleton places its bones)."""
+        raise NotImplementedError
+
+    def positions(self, point):
+        """``(n, 3)``: the positions of ``point``."""
+        raise NotImplementedError
+
+    def evaluate(self, point, q):
+        """``(phi, g (n, 3), q)``: the step objective at ``point`` (rotations warm-started
+        from ``q``)."""
+        raise NotImplementedError
+
+    def gradient(self, point, g):
+        """``(r, gnorm, data)``: the objective's gradient ``g`` ``(n, 3)`` as a tangent
+        ``r`` (zero on what may not move this iteration), its norm (the convergence
+        measure) and data that :meth:`precondition` and :meth:`pair` take (a pytree)."""
+        raise NotImplementedError
+
+    def precondition(self, point, data, r):
+        """``H0 r``: the initial inverse Hessian (the PD matrix's solve) on a tangent."""
+        raise NotImplementedError
+
+    def move(self, point, step):
+        """The point reached from ``point`` along the tangent ``step``."""
+        raise NotImplementedError
+
+    def pair(self, point, data, g, new, data_new, g_new, step):
+        """``(s, y)`` flat: the curvature pair of the step ``step`` from ``point`` to ``new``
+        (with gradients ``g``, ``g_new`` ``(n, 3)``), for L-BFGS's history."""
         raise NotImplementedError
 
 

@@ -14,8 +14,13 @@ step is a PD step, and adds curvature from the last ``history`` steps; an Armijo
 backtracking line search keeps it a descent method, and when the search fails it falls
 back to the plain PD step, which always descends.
 
-Each solver is a small frozen dataclass (static: changing it recompiles) with
-``run(problem, x0, q0, threshold, max_iter, unrolled=False) -> Solution``.
+Both are one loop, :func:`descend`, written against a chart
+(:class:`~softbody._interfaces.Chart`: a point, the gradient as a tangent, the
+preconditioner, a move along a tangent), so that the same L-BFGS and the same
+local-global run in plain vertex coordinates and in a skeleton's reduced coordinates
+(which backtrack by halving before giving up on a step: joint servos are not in the PD
+matrix). Each solver is a small frozen dataclass (static: changing it recompiles) with
+``run(chart, x0, q0, threshold, max_iter, unrolled=False) -> Solution``.
 
 **The composed step.** :func:`softbody.model.build` composes each scene's :class:`Step`
 from three parts: the coordinates (:class:`Vertices` here, or a skeleton's
@@ -23,7 +28,7 @@ from three parts: the coordinates (:class:`Vertices` here, or a skeleton's
 (:class:`softbody.contact.Contact` where the scene has contact rows: obstacles or other
 row generators) and the solver chosen in
 ``Options(solver=...)``. The coordinates run the solver (vertex coordinates run it as it
-is; reduced coordinates run its L-BFGS in the skeleton's coordinates); the contact
+is; reduced coordinates hand it their chart); the contact
 constraint runs its splitting iteration in the coordinates and hands the steps that touch
 nothing to the solver. Adjoints see only the step (its chart and its solution).
 """
@@ -37,7 +42,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from softbody._interfaces import ContactSweep, Coordinates
+from softbody._interfaces import Chart, ContactSweep, Coordinates
 
 Array = jax.Array
 
@@ -87,17 +92,18 @@ class Solution(NamedTuple):
 
 
 class NonlinearSolver:
-    """Base class of the nonlinear iterations (in vertex coordinates; other coordinates
-    run them their own way, see :meth:`softbody._interfaces.Coordinates.minimize`).
+    """Base class of the nonlinear iterations, written once against a
+    :class:`~softbody._interfaces.Chart` so that they run in any coordinates.
 
     ``volume_weight`` scales the volume term's weight in the prefactored matrix.
     """
 
     volume_weight: float = 1.0
 
-    def run(self, problem: StepProblem, x0: Array, q0: Array, threshold: Array, max_iter: int,
+    def run(self, chart: Chart, x0: Array, q0: Array, threshold: Array, max_iter: int,
             unrolled: bool | Unroll = False) -> Solution:
-        """Iterate from ``(x0, q0)`` until ``|g| <= threshold`` or ``max_iter`` iterations.
+        """Iterate from ``(x0, q0)`` in ``chart`` until its gradient norm is
+        ``<= threshold`` or ``max_iter`` iterations.
 
         ``unrolled=True`` or an :class:`Unroll` runs a fixed-trip loop (see
         :func:`iterate`) that reverse-mode autodiff can differentiate.
@@ -158,25 +164,13 @@ class LocalGlobal(NonlinearSolver):
     """Plain projective dynamics: alternate local projections and the global solve.
 
     Its monotone decrease of the objective needs the PD matrix with the true weights, so
-    ``volume_weight`` is fixed at 1.
+    ``volume_weight`` is fixed at 1. In a chart whose plain step may not descend
+    (``Chart.backtracks`` > 0: a skeleton's joint servos are not in the matrix) a step
+    that fails Armijo's test is halved.
     """
 
-    def run(self, problem, x0, q0, threshold, max_iter, unrolled=False):
-        evaluate, precondition = problem.evaluate, problem.precondition
-        _, g0, q0 = evaluate(x0, q0)
-
-        def cond(c):
-            _, _, g, k = c
-            return (_norm(g) > threshold) & (k < max_iter)
-
-        def body(c):
-            x, q, g, k = c
-            x = x - precondition(g)
-            _, g, q = evaluate(x, q)
-            return x, q, g, k + 1
-
-        x, q, g, k = iterate(cond, body, (x0, q0, g0, jnp.asarray(0)), max_iter, unrolled)
-        return Solution(x, q, k, k + 1, _norm(g))
+    def run(self, chart, x0, q0, threshold, max_iter, unrolled=False):
+        return descend(chart, 0, x0, q0, threshold, max_iter, unrolled)
 
 
 def lbfgs_direction(g: Array, s_hist: Array, y_hist: Array, rho: Array, count: Array, sy: Array,
@@ -248,14 +242,104 @@ def store_pair(history: tuple, s: Array, y: Array) -> tuple:
     return s_hist, y_hist, rho, count + store.astype(count.dtype), sy_hist
 
 
+def descend(chart: Chart, history: int, x0: Array, q0: Array, threshold: Array, max_iter: int,
+            unrolled: bool | Unroll = False) -> Solution:
+    """The one descent loop of the nonlinear solvers: L-BFGS with ``history`` pairs, or
+    the plain preconditioned (PD) step with ``history=0``, in the coordinates of ``chart``.
+
+    Each iteration takes the direction ``d = -H r`` (L-BFGS's two-loop recursion with the
+    chart's preconditioner as initial inverse Hessian; ``d = -H0 r`` without history; a
+    quasi-Newton direction that does not descend is replaced by the plain one), tries the
+    full step, halves it up to ``chart.backtracks`` times while Armijo's test (c = 1e-4)
+    fails and, with history, takes the plain step instead of a quasi-Newton step that still
+    fails (the plain step descends where the PD matrix majorises the objective).
+
+    Arguments:
+        chart: the :class:`~softbody._interfaces.Chart` of the step's coordinates.
+        history: L-BFGS pairs kept (static); 0 for plain local-global PD.
+        x0: ``(n, 3)`` start positions; q0: their rotations' warm start.
+        threshold: stop when the chart's gradient norm is at most this.
+        max_iter: most iterations (static).
+        unrolled: ``False`` for a ``while_loop``, else a fixed-trip loop (:func:`iterate`)
+            that reverse mode differentiates as it ran.
+
+    Returns:
+        A :class:`Solution` (``evaluations`` counts the trials of the search).
+    """
+    point = chart.start(x0)
+    phi0, g0, q0 = chart.evaluate(point, q0)
+    r0, gnorm0, data0 = chart.gradient(point, g0)
+    backtracks = chart.backtracks
+
+    def cond(c):
+        gnorm, k = c[6], c[8]
+        return (gnorm > threshold) & (k < max_iter)
+
+    def body(c):
+        point, q, phi, g, r, data, _, lbfgs, k, evals = c
+
+        def precondition(v):
+            return chart.precondition(point, data, v)
+
+        if history:
+            d = lbfgs_direction(r, *lbfgs, precondition)
+            d = jax.lax.cond(jnp.sum(r * d) < 0, lambda: d, lambda: -precondition(r))
+        else:
+            d = -precondition(r)
+        slope = jnp.sum(r * d)
+
+        def trial(alpha):
+            step = d if alpha is None else alpha * d
+            new = chart.move(point, step)
+            return (new, *chart.evaluate(new, q), step)
+
+        def rejected(alpha, phi_t):
+            return ~(phi_t <= phi + 1e-4 * (1.0 if alpha is None else alpha) * slope + 1e-14 * jnp.abs(phi))
+
+        taken, tries = trial(None), jnp.asarray(0)
+        if backtracks:
+            def halve(s):
+                alpha, tries, _ = s
+                return alpha / 2, tries + 1, trial(alpha / 2)
+
+            # The search runs no iterations after acceptance (they would halve the accepted step).
+            alpha, tries, taken = iterate(lambda s: rejected(s[0], s[2][1]) & (s[1] < backtracks), halve,
+                                          (jnp.asarray(1.0), tries, trial(1.0)), backtracks, unrolled is not False)
+        else:
+            alpha = None
+        failed = jnp.asarray(False)
+        if history:
+            failed = rejected(alpha, taken[1])
+
+            def plain():
+                step = -precondition(r)
+                new = chart.move(point, step)
+                return (new, *chart.evaluate(new, q), step)
+
+            taken = jax.lax.cond(failed, plain, lambda: taken)
+        new, phi_new, g_new, q_new, step = taken
+        r_new, gnorm, data_new = chart.gradient(new, g_new)
+        if history:
+            lbfgs = store_pair(lbfgs, *chart.pair(point, data, g, new, data_new, g_new, step))
+        evals = evals + 1 + tries + failed.astype(evals.dtype)
+        return new, q_new, phi_new, g_new, r_new, data_new, gnorm, lbfgs, k + 1, evals
+
+    lbfgs = empty_history(history, r0.size, r0.dtype) if history else ()
+    init = (point, q0, phi0, g0, r0, data0, gnorm0, lbfgs, jnp.asarray(0), jnp.asarray(1))
+    point, q, _, _, _, _, gnorm, _, k, evals = iterate(cond, body, init, max_iter, unrolled)
+    return Solution(chart.positions(point), q, k, evals, gnorm)
+
+
 @dataclass(frozen=True)
 class LBFGS(NonlinearSolver):
-    """L-BFGS with the PD matrix as initial Hessian and an Armijo safeguard.
+    """L-BFGS with the PD matrix as initial Hessian and an Armijo safeguard (:func:`descend`).
 
     Each iteration tries the full quasi-Newton step; if it does not decrease the
     objective enough (Armijo, c = 1e-4), it takes the plain PD step instead, which always
-    descends. (On the shared cantilever, backtracking by halving first did not reduce
-    the iteration count; the fixed pattern keeps the loop differentiable when unrolled.)
+    descends in vertex coordinates. (On the shared cantilever, backtracking by halving
+    first did not reduce the iteration count; the fixed pattern keeps the loop
+    differentiable when unrolled.) A skeleton's chart halves first (its joint servos are
+    not in the PD matrix).
 
     Attributes:
         history: number of stored curvature pairs.
@@ -267,34 +351,36 @@ class LBFGS(NonlinearSolver):
     history: int = 10
     volume_weight: float = 0.2
 
-    def run(self, problem, x0, q0, threshold, max_iter, unrolled=False):
-        evaluate, precondition = problem.evaluate, problem.precondition
-        phi0, g0, q0 = evaluate(x0, q0)
+    def run(self, chart, x0, q0, threshold, max_iter, unrolled=False):
+        return descend(chart, self.history, x0, q0, threshold, max_iter, unrolled)
 
-        def cond(c):
-            g, k = c[2], c[5]
-            return (_norm(g) > threshold) & (k < max_iter)
 
-        def body(c):
-            x, phi, g, q, history, k, evals = c
-            d = lbfgs_direction(g, *history, precondition)
-            d = jax.lax.cond(jnp.sum(g * d) < 0, lambda: d, lambda: -precondition(g))
-            slope = jnp.sum(g * d)
-            phi_t, g_t, q_t = evaluate(x + d, q)
-            failed = ~(phi_t <= phi + 1e-4 * slope + 1e-14 * jnp.abs(phi))
+class _VertexChart(Chart):
+    """Plain coordinates: a point is the positions ``(n, 3)``; tangents are ``(n, 3)``."""
 
-            def fallback():
-                x_f = x - precondition(g)
-                return (x_f, *evaluate(x_f, q))
+    def __init__(self, problem: StepProblem):
+        self.problem = problem
 
-            x_new, phi_new, g_new, q_new = jax.lax.cond(failed, fallback, lambda: (x + d, phi_t, g_t, q_t))
-            history = store_pair(history, (x_new - x).reshape(-1), (g_new - g).reshape(-1))
-            evals = evals + 1 + failed.astype(evals.dtype)
-            return x_new, phi_new, g_new, q_new, history, k + 1, evals
+    def start(self, x0):
+        return x0
 
-        init = (x0, phi0, g0, q0, empty_history(self.history, x0.size, x0.dtype), jnp.asarray(0), jnp.asarray(1))
-        x, _, g, q, _, k, evals = iterate(cond, body, init, max_iter, unrolled)
-        return Solution(x, q, k, evals, _norm(g))
+    def positions(self, point):
+        return point
+
+    def evaluate(self, point, q):
+        return self.problem.evaluate(point, q)
+
+    def gradient(self, point, g):
+        return g, _norm(g), ()
+
+    def precondition(self, point, data, r):
+        return self.problem.precondition(r)
+
+    def move(self, point, step):
+        return point + step
+
+    def pair(self, point, data, g, new, data_new, g_new, step):
+        return (new - point).reshape(-1), (g_new - g).reshape(-1)
 
 
 @dataclass(frozen=True)
@@ -312,8 +398,9 @@ class Vertices(Coordinates):
     def implicit_chart(self, prepared, x, free):
         return None
 
-    def minimize(self, solver, problem, x0, q0, threshold, max_iter, unrolled=False):
-        return solver.run(problem, x0, q0, threshold, max_iter, unrolled)
+    def chart(self, problem):
+        """Every free vertex moves on its own (see :class:`~softbody._interfaces.Chart`)."""
+        return _VertexChart(problem)
 
     def contact_sweep(self, problem, p, law):
         """Every free vertex takes the per-vertex contact step; nothing else moves."""
@@ -387,4 +474,4 @@ class Step:
         there)."""
         if self.contact is not None:
             return self.contact.run(problem, self.coordinates, self.solver, x0, q0, threshold, max_iter)
-        return self.coordinates.minimize(self.solver, problem, x0, q0, threshold, max_iter, unrolled)
+        return self.solver.run(self.coordinates.chart(problem), x0, q0, threshold, max_iter, unrolled)

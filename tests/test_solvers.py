@@ -1,10 +1,13 @@
-"""The L-BFGS direction in matrix form against the textbook two-loop recursion."""
+"""The L-BFGS direction in matrix form against the textbook two-loop recursion, and the
+solvers run in a chart that a test defines."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from softbody.solvers import lbfgs_direction
+from softbody._interfaces import Chart
+from softbody.solvers import LBFGS, LocalGlobal, lbfgs_direction
 
 
 def two_loop(g, pairs, h0):
@@ -41,3 +44,68 @@ def test_ring_buffer_direction_equals_the_two_loop_recursion(count):
                           jnp.asarray(count), jnp.asarray(sy), lambda r: jnp.asarray(h0) * r)
     want = two_loop(g, pairs[-m:], h0)
     assert np.max(np.abs(np.asarray(got) - want)) <= 1e-12 * np.max(np.abs(want))
+
+
+class CircleChart(Chart):
+    """A chart defined here alone: one point on the unit circle in the xy-plane, its
+    tangent the angle (1,), moved by rotating. The solvers of softbody.solvers run in it
+    unchanged, as they run in vertex and skeleton coordinates."""
+
+    backtracks = 10
+
+    def __init__(self, energy, h0: float):
+        self.energy, self.h0 = energy, h0
+
+    def start(self, x0):
+        return jnp.arctan2(x0[0, 1], x0[0, 0])
+
+    def positions(self, theta):
+        return jnp.stack([jnp.cos(theta), jnp.sin(theta), 0.0])[None]
+
+    def evaluate(self, theta, q):
+        x = self.positions(theta)
+        phi, g = jax.value_and_grad(self.energy)(x)
+        return phi, g, q
+
+    def gradient(self, theta, g):
+        r = jnp.sum(g[0] * jnp.stack([-jnp.sin(theta), jnp.cos(theta), 0.0]))[None]  # dPhi/dtheta
+        return r, jnp.abs(r[0]), ()
+
+    def precondition(self, theta, data, r):
+        return self.h0 * r
+
+    def move(self, theta, step):
+        return theta + step[0]
+
+    def pair(self, theta, data, g, new, data_new, g_new, step):
+        return step, self.gradient(new, g_new)[0] - self.gradient(theta, g)[0]
+
+
+@pytest.mark.parametrize("solver", [LBFGS(history=3), LocalGlobal()], ids=["lbfgs", "local-global"])
+def test_solvers_run_in_a_chart_defined_outside_the_package(solver):
+    """A point on a circle pulled by a spring towards (cos 1, sin 1) against a quartic
+    term in x (a smooth non-quadratic energy of the angle, curvature about 1). The
+    minimiser solves the stationarity condition (bisection); the solvers stop at
+    |dPhi/dtheta| <= 1e-8, so the point is within about 1e-8 / curvature of it. With an
+    initial inverse Hessian three times too large, the Armijo halving of the chart's
+    search is what makes the plain step converge. (Armijo's test reads differences of
+    Phi: it cannot resolve gradients much below sqrt(eps) |Phi|.)"""
+    target = jnp.array([np.cos(1.0), np.sin(1.0), 0.0])
+
+    def energy(x):
+        return 0.5 * jnp.sum((x[0] - target) ** 2) + 0.05 * x[0, 0] ** 4
+
+    chart = CircleChart(energy, h0=3.0)  # 1 / curvature is ~1: a step three times too long
+    sol = solver.run(chart, jnp.array([[1.0, 0.0, 0.0]]), jnp.zeros(1), jnp.asarray(1e-8), 200)
+
+    def slope(theta):  # dPhi/dtheta, decreasing through zero at the minimiser in (0, 1.2)
+        return float(chart.gradient(theta, jax.grad(energy)(chart.positions(theta)))[0][0])
+
+    lo, hi = 0.0, 1.2
+    for _ in range(80):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if slope(mid) < 0 else (lo, mid)
+    want = chart.positions(0.5 * (lo + hi))
+    assert float(sol.gnorm) <= 1e-8 and int(sol.iterations) < 200
+    assert np.max(np.abs(np.asarray(sol.x) - np.asarray(want))) < 2e-8
+    assert int(sol.evaluations) > int(sol.iterations) + 1  # the search halved some steps

@@ -499,7 +499,7 @@ class Contact:
                                   fallback=~done | (check.iterations > 1)), cache
 
         def free_step():  # the solver sees no rows: it is contact-free by definition
-            sol = coordinates.minimize(solver, problem._replace(rows=()), x0, q0, threshold, max_iter)
+            sol = solver.run(coordinates.chart(problem._replace(rows=())), x0, q0, threshold, max_iter)
             return sol._replace(x=iteration.lift(sol.x), fallback=no), cache0
 
         def skipped():

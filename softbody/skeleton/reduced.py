@@ -9,11 +9,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from softbody._interfaces import Capabilities, ContactSweep, Coordinates
+from softbody._interfaces import Capabilities, Chart, ContactSweep, Coordinates
 from softbody.skeleton.condense import SchurFactor, _held, _solve_reduced, schur_factor
 from softbody.skeleton.joints import SkeletonError
 from softbody.skeleton.rig import Rig
-from softbody.solvers import LBFGS, LocalGlobal, Solution, empty_history, iterate, lbfgs_direction, store_pair
+from softbody.solvers import LBFGS, LocalGlobal
 
 Array = jax.Array
 
@@ -24,12 +24,15 @@ class Reduced(Coordinates):
     bones placed by ``FK(z)`` (see the module docstring). :func:`~softbody.model.build`
     chooses them for a scene with a skeleton.
 
-    **Without contact** (:meth:`minimize`) each iteration evaluates ``Phi`` and its gradient
+    **Without contact** (:meth:`chart`: the step's solver, L-BFGS or local-global, runs
+    its one loop :func:`softbody.solvers.descend` in these coordinates) each iteration
+    evaluates ``Phi`` and its gradient
     at ``x = assemble(x_free, FK(z))``, forms the reduced gradient ``(g_f, B^T g_r)``, takes
     the L-BFGS direction in the reduced coordinates (the solver's ``history`` pairs;
     :class:`~softbody.solvers.LocalGlobal` keeps none) with the reduced PD solve
-    (:func:`schur_direction`) as its initial inverse Hessian, and backtracks (halving)
-    until Armijo's condition holds. The PD matrix holds the elastic and inertial terms
+    (:func:`schur_direction`) as its initial inverse Hessian, and backtracks (halving, at
+    most ``backtracks`` times) until Armijo's condition holds; an L-BFGS step that still
+    fails is replaced by the plain reduced PD step. The PD matrix holds the elastic and inertial terms
     only; the quasi-Newton pairs add the curvature of the rest, chiefly joint servos,
     whose stiffness in joint space can exceed the condensed matrix's by orders of
     magnitude (a servo of 50 N m/rad on a soft arm: 200 plain reduced-PD iterations ended
@@ -227,10 +230,9 @@ class Reduced(Coordinates):
 
         return ContactSweep(problem.free * (1.0 - rig.is_bone), place, sweep, owners, scale, forces)
 
-    def minimize(self, solver, problem, x0, q0, threshold, max_iter, unrolled=False):
-        """Solve one step without contact (see the class docstring); ``unrolled=False``
-        runs a ``while_loop`` (forward mode only), otherwise a fixed-trip loop that reverse
-        mode differentiates as it ran.
+    def chart(self, problem):
+        """The reduced coordinates as a :class:`~softbody._interfaces.Chart` for the step
+        without contact (see the class docstring).
 
         Raises:
             SkeletonError: ``problem.prepared`` is not this rig's condensation.
@@ -238,94 +240,67 @@ class Reduced(Coordinates):
         if not isinstance(problem.prepared, SchurFactor):
             raise SkeletonError("reduced coordinates need their per-rollout condensation in problem.prepared; build "
                                 "the step problem with softbody.model.prepare and softbody.objective.solve_step")
-        history = solver.history if isinstance(solver, LBFGS) else 0
-        return self._solve(problem, x0, q0, threshold, max_iter, unrolled, history)
+        return _ReducedChart(self.rig, problem, self.backtracks)
 
-    def _solve(self, problem, x0, q0, threshold, max_iter, unrolled, m):
-        """The iterations (see the class docstring)."""
-        rig, evaluate = self.rig, problem.evaluate
-        factor = problem.prepared
-        bone = jnp.asarray(rig.bone)
-        soft = 1.0 - rig.is_bone
-        n = x0.shape[0]
 
-        def reduced(g, pose, z):
-            """The reduced gradient ``B^T g_r``, the dofs held at a limit this iteration, and
-            the norm of ``(g_f, B^T g_r)`` over the dofs that may move."""
-            g_z = rig.reduce(pose, g[bone])
-            locked = _held(rig, z, g_z)
-            gnorm = jnp.sqrt(jnp.sum((g * soft) ** 2) + jnp.sum((g_z * (1.0 - locked)) ** 2))
-            return g_z, locked, gnorm
+class _ReducedChart(Chart):
+    """A point is ``(x (n, 3), z, pose)`` with the bones at ``FK(z)``; a tangent is flat
+    ``(3 n + n_dofs,)``: the soft vertices' rows (zero on bone and held vertices), then the
+    joint tangents. The gradient's data is ``(g_z, locked)``: the reduced gradient ``B^T g_r``
+    and the dofs held at a limit this iteration (their tangent rows are masked out)."""
 
-        def flat(v_f, v_z):  # a reduced vector (soft rows, joint tangents) as one (3 n + k,)
-            return jnp.concatenate([(v_f * soft).reshape(-1), v_z])
+    def __init__(self, rig: Rig, problem, backtracks: int):
+        self.rig, self.problem, self.backtracks = rig, problem, backtracks
+        self.bone = jnp.asarray(rig.bone)
+        self.soft = 1.0 - rig.is_bone
+        self.n = problem.x_n.shape[0]
 
-        def unflat(v):
-            return v[:3 * n].reshape(n, 3), v[3 * n:]
+    def _flat(self, v_f, v_z):
+        return jnp.concatenate([(v_f * self.soft).reshape(-1), v_z])
 
-        def direction(g, pose, g_z, locked, lbfgs):
-            """``(d, d_z)``: the step is ``x - alpha d``, ``z - alpha d_z`` (bone rows of
-            ``d`` unused: the bones are placed by ``FK``)."""
-            move = 1.0 - locked
+    def _unflat(self, v):
+        return v[:3 * self.n].reshape(self.n, 3), v[3 * self.n:]
 
-            def precondition(r):
-                r_f, r_z = unflat(r)
-                d, d_z = _solve_reduced(factor, rig, pose, r_f, r_z * move, locked)
-                return flat(d, d_z * move)
+    def start(self, x0):
+        z0 = self.rig.coordinates(x0[self.bone])
+        pose0 = self.rig.pose(z0)
+        return x0.at[self.bone].set(pose0.x), z0, pose0
 
-            g_r = flat(g, g_z * move)
-            if m == 0:
-                return unflat(precondition(g_r))
-            d_f, d_z = unflat(-lbfgs_direction(g_r, *lbfgs, precondition))
-            d = flat(d_f, d_z * move)
-            return unflat(jax.lax.cond(jnp.sum(g_r * d) > 0, lambda: d, lambda: precondition(g_r)))
+    def positions(self, point):
+        return point[0]
 
-        z0 = rig.coordinates(x0[bone])
-        pose0 = rig.pose(z0)
-        x0 = x0.at[bone].set(pose0.x)
-        phi0, g0, q0 = evaluate(x0, q0)
+    def evaluate(self, point, q):
+        return self.problem.evaluate(point[0], q)
 
-        def cond(c):
-            return (c[8] > threshold) & (c[10] < max_iter)
+    def gradient(self, point, g):
+        _, z, pose = point
+        g_z = self.rig.reduce(pose, g[self.bone])
+        locked = _held(self.rig, z, g_z)
+        move = 1.0 - locked
+        gnorm = jnp.sqrt(jnp.sum((g * self.soft) ** 2) + jnp.sum((g_z * move) ** 2))
+        return self._flat(g, g_z * move), gnorm, (g_z, locked)
 
-        def body(c):
-            x, z, q, phi, g, pose, g_z, locked, _, evals, k, lbfgs = c
-            d, d_z = direction(g, pose, g_z, locked, lbfgs)
-            slope = jnp.sum((g * soft) * d) + jnp.sum(g_z * d_z)  # -dPhi/dalpha along (x - alpha d, z - alpha d_z)
+    def precondition(self, point, data, r):
+        _, locked = data
+        move = 1.0 - locked
+        r_f, r_z = self._unflat(r)
+        d, d_z = _solve_reduced(self.problem.prepared, self.rig, point[2], r_f, r_z * move, locked)
+        return self._flat(d, d_z * move)
 
-            def trial(alpha):
-                z_t = rig.retract(z, -alpha * d_z)
-                pose_t = rig.pose(z_t)
-                x_t = (x - alpha * d).at[bone].set(pose_t.x)
-                phi_t, g_t, q_t = evaluate(x_t, q)
-                return x_t, z_t, q_t, phi_t, g_t, pose_t
+    def move(self, point, step):
+        x, z, _ = point
+        step_f, step_z = self._unflat(step)
+        z_t = self.rig.retract(z, step_z)
+        pose_t = self.rig.pose(z_t)
+        return (x + step_f).at[self.bone].set(pose_t.x), z_t, pose_t
 
-            def rejected(t):
-                alpha, tries, (_, _, _, phi_t, _, _) = t
-                return (~(phi_t <= phi - 1e-4 * alpha * slope + 1e-14 * jnp.abs(phi))) & (tries < self.backtracks)
-
-            def halve(t):
-                alpha, tries, _ = t
-                return alpha / 2, tries + 1, trial(alpha / 2)
-
-            # The search runs no iterations after acceptance (they would halve the accepted step).
-            alpha, tries, (x_new, z_new, q, phi, g_new, pose_new) = iterate(
-                rejected, halve, (jnp.asarray(1.0), jnp.asarray(0), trial(1.0)), self.backtracks,
-                unrolled is not False)
-            g_z_new, locked, gnorm = reduced(g_new, pose_new, z_new)
-            if m:
-                # The pairs leave out the free bodies' dofs, whose block the reduced PD solve
-                # holds exactly (a free rigid body converges in one iteration, to 1e-17): their
-                # later steps and gradient changes are round-off, which would set the quasi-
-                # Newton matrix on them at random, and reverse mode through 1 / (s . y) of
-                # round-off blows up (an unrolled solve beside a soft body).
-                keep = 1.0 - rig.detached_dofs
-                lbfgs = store_pair(lbfgs, flat(x_new - x, rig.step_taken(z, z_new, -alpha * d_z) * keep),
-                                   flat(g_new - g, (g_z_new - g_z) * keep))
-            return (x_new, z_new, q, phi, g_new, pose_new, g_z_new, locked, gnorm, evals + 1 + tries, k + 1,
-                    lbfgs)
-
-        lbfgs = empty_history(m, 3 * n + rig.n_dofs, x0.dtype)
-        init = (x0, z0, q0, phi0, g0, pose0, *reduced(g0, pose0, z0), jnp.asarray(1), jnp.asarray(0), lbfgs)
-        x, _, q, _, _, _, _, _, gnorm, evals, k, _ = iterate(cond, body, init, max_iter, unrolled)
-        return Solution(x, q, k, evals, gnorm)
+    def pair(self, point, data, g, new, data_new, g_new, step):
+        # The pairs leave out the free bodies' dofs, whose block the reduced PD solve holds
+        # exactly (a free rigid body converges in one iteration, to 1e-17): their later
+        # steps and gradient changes are round-off, which would set the quasi-Newton
+        # matrix on them at random, and reverse mode through 1 / (s . y) of round-off
+        # blows up (an unrolled solve beside a soft body).
+        keep = 1.0 - self.rig.detached_dofs
+        (x, z, _), (x_new, z_new, _) = point, new
+        return (self._flat(x_new - x, self.rig.step_taken(z, z_new, self._unflat(step)[1]) * keep),
+                self._flat(g_new - g, (data_new[0] - data[0]) * keep))
