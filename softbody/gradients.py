@@ -76,6 +76,33 @@ class Adjoint:
         """One step (or static solve): returns ``(Solution, StepInfo)``."""
         raise NotImplementedError
 
+    def loop(self, body: Callable, carry, inputs, n_steps: int):
+        """The time loop of a rollout, as this mode wants it kept for the backward pass:
+        ``lax.scan(body, carry, inputs, length=n_steps)``, nested when
+        :attr:`segment_checkpoints` is set (and ``n_steps > 3``): the outer scan keeps
+        only segment-start carries, each segment of :func:`segment_length` steps is
+        rematerialised in the backward pass (O(sqrt(n_steps)) carries in memory).
+
+        Arguments:
+            body: ``(carry, inputs_k) -> (carry, out_k)``, one step.
+            carry: the loop's start; inputs: a pytree of ``n_steps`` rows (or ``None``).
+            n_steps: the number of steps (static).
+
+        Returns:
+            ``(carry, out)`` as ``lax.scan`` returns them (``out`` with ``n_steps`` rows).
+        """
+        if not (self.segment_checkpoints and n_steps > 3):
+            return jax.lax.scan(body, carry, inputs, length=n_steps)
+        k = segment_length(n_steps)
+        segments = jax.tree.map(lambda a: a.reshape((n_steps // k, k) + a.shape[1:]), inputs)
+
+        @jax.checkpoint
+        def segment(carry, seg_inputs):
+            return jax.lax.scan(body, carry, seg_inputs, length=k)
+
+        carry, out = jax.lax.scan(segment, carry, segments, length=n_steps // k)
+        return carry, jax.tree.map(lambda a: a.reshape((n_steps,) + a.shape[2:]), out)
+
 
 @dataclass(frozen=True)
 class Unrolled(Adjoint):

@@ -57,7 +57,6 @@ import numpy as np
 from softbody._interfaces import Integrator
 from softbody._types import RESULTS, Model, Params, Prepared, SceneError, State, StepInfo
 from softbody.elastic import deformation_gradient
-from softbody.gradients import segment_length
 from softbody.model import clamp, initial_state, prepare
 from softbody.objective import accelerations, step_problem
 from softbody.rotation import cold_start, det3
@@ -440,9 +439,10 @@ def integrate(integrator: Integrator, model: Model, params: Params, state0: Stat
     Each step's code (:class:`~softbody._types.RESULTS`) is ``inverted`` where it ends with
     more inverted tets than ``state0``, else ``nonfinite`` where its state or residual is
     not finite, else ``max_iterations`` where it did not converge. After a ``nonfinite``
-    step the state is held and every later step carries that code. With an adjoint that
-    asks for segment checkpoints (:class:`~softbody.gradients.Unrolled`) the scan is
-    nested, keeping only segment-start states for the backward pass.
+    step the state is held and every later step carries that code. The adjoint owns the
+    loop (:meth:`softbody.gradients.Adjoint.loop`): one that asks for segment checkpoints
+    (:class:`~softbody.gradients.Unrolled`) nests the scan, keeping only segment-start
+    states for the backward pass.
 
     Arguments:
         integrator: the :class:`~softbody._interfaces.Integrator`.
@@ -478,20 +478,7 @@ def integrate(integrator: Integrator, model: Model, params: Params, state0: Stat
         return (new, new_memory, bad | ~finite), (new.x, new.v, info, a)
 
     carry = (state0, memory0, jnp.asarray(False))
-    if model.options.adjoint.segment_checkpoints and n_steps > 3:
-        # Nested scans: the outer one keeps only segment-start states; each segment is
-        # rematerialised in the backward pass (O(sqrt(n_steps)) states in memory).
-        k = segment_length(n_steps)
-        segments = jax.tree.map(lambda a: a.reshape((n_steps // k, k) + a.shape[1:]), inputs)
-
-        @jax.checkpoint
-        def segment(carry, seg_inputs):
-            return jax.lax.scan(body, carry, seg_inputs, length=k)
-
-        _, out = jax.lax.scan(segment, carry, segments, length=n_steps // k)
-        out = jax.tree.map(lambda a: a.reshape((n_steps,) + a.shape[2:]), out)
-    else:
-        _, out = jax.lax.scan(body, carry, inputs, length=n_steps)
+    _, out = model.options.adjoint.loop(body, carry, inputs, n_steps)
     xs, vs, info, activations = out
     failed, branch = _first_failure(info.result, xs, vs)
     xs = jnp.concatenate([state0.x[None], xs])

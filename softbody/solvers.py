@@ -249,10 +249,11 @@ def descend(chart: Chart, history: int, x0: Array, q0: Array, threshold: Array, 
 
     Each iteration takes the direction ``d = -H r`` (L-BFGS's two-loop recursion with the
     chart's preconditioner as initial inverse Hessian; ``d = -H0 r`` without history; a
-    quasi-Newton direction that does not descend is replaced by the plain one), tries the
-    full step, halves it up to ``chart.backtracks`` times while Armijo's test (c = 1e-4)
-    fails and, with history, takes the plain step instead of a quasi-Newton step that still
-    fails (the plain step descends where the PD matrix majorises the objective).
+    quasi-Newton direction that does not descend is replaced by the plain one) and tries
+    the full step. In a chart with ``backtracks`` it halves the step up to that many times
+    while Armijo's test (c = 1e-4) fails; in one without, where the plain step descends
+    (the PD matrix majorises the objective), a quasi-Newton step that fails is replaced by
+    the plain step.
 
     Arguments:
         chart: the :class:`~softbody._interfaces.Chart` of the step's coordinates.
@@ -296,20 +297,19 @@ def descend(chart: Chart, history: int, x0: Array, q0: Array, threshold: Array, 
         def rejected(alpha, phi_t):
             return ~(phi_t <= phi + 1e-4 * (1.0 if alpha is None else alpha) * slope + 1e-14 * jnp.abs(phi))
 
-        taken, tries = trial(None), jnp.asarray(0)
+        tries, failed = jnp.asarray(0), jnp.asarray(False)
         if backtracks:
             def halve(s):
                 alpha, tries, _ = s
                 return alpha / 2, tries + 1, trial(alpha / 2)
 
             # The search runs no iterations after acceptance (they would halve the accepted step).
-            alpha, tries, taken = iterate(lambda s: rejected(s[0], s[2][1]) & (s[1] < backtracks), halve,
-                                          (jnp.asarray(1.0), tries, trial(1.0)), backtracks, unrolled is not False)
+            _, tries, taken = iterate(lambda s: rejected(s[0], s[2][1]) & (s[1] < backtracks), halve,
+                                      (jnp.asarray(1.0), tries, trial(1.0)), backtracks, unrolled is not False)
         else:
-            alpha = None
-        failed = jnp.asarray(False)
-        if history:
-            failed = rejected(alpha, taken[1])
+            taken = trial(None)
+        if history and not backtracks:
+            failed = rejected(None, taken[1])
 
             def plain():
                 step = -precondition(r)
@@ -338,7 +338,7 @@ class LBFGS(NonlinearSolver):
     objective enough (Armijo, c = 1e-4), it takes the plain PD step instead, which always
     descends in vertex coordinates. (On the shared cantilever, backtracking by halving
     first did not reduce the iteration count; the fixed pattern keeps the loop
-    differentiable when unrolled.) A skeleton's chart halves first (its joint servos are
+    differentiable when unrolled.) A skeleton's chart halves instead (its joint servos are
     not in the PD matrix).
 
     Attributes:

@@ -31,8 +31,7 @@ class Reduced(Coordinates):
     the L-BFGS direction in the reduced coordinates (the solver's ``history`` pairs;
     :class:`~softbody.solvers.LocalGlobal` keeps none) with the reduced PD solve
     (:func:`schur_direction`) as its initial inverse Hessian, and backtracks (halving, at
-    most ``backtracks`` times) until Armijo's condition holds; an L-BFGS step that still
-    fails is replaced by the plain reduced PD step. The PD matrix holds the elastic and inertial terms
+    most ``backtracks`` times) until Armijo's condition holds. The PD matrix holds the elastic and inertial terms
     only; the quasi-Newton pairs add the curvature of the rest, chiefly joint servos,
     whose stiffness in joint space can exceed the condensed matrix's by orders of
     magnitude (a servo of 50 N m/rad on a soft arm: 200 plain reduced-PD iterations ended
