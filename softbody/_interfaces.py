@@ -484,6 +484,31 @@ class Chart:
         raise NotImplementedError
 
 
+class RigidParts(NamedTuple):
+    """How a step's coordinates move vertices that do not move alone (bones, rigid
+    bodies), for the pair rows' force updates (:attr:`ContactSweep.rigid`).
+
+    Attributes:
+        compliance: ``(n, 1)`` a vertex's compliance to a force on it, m/N: ``1 / P`` on
+            the vertices that move alone; on a rigid part the diagonal of its Delassus
+            operator ``B K^-1 B^T`` (mean over the three axes).
+        body: ``(n,)`` static ints, the part of each vertex: its own index for a vertex
+            that moves alone, one label ``>= n`` for all vertices of one rigid part. Pair
+            rows split a part's compliance among the rows that touch it (mass splitting).
+        respond: ``(X_new, aux, force (n, 3)) -> X_new``: the iterate moved by its
+            coordinates' response to the extra forces ``force`` on the vertices (``aux``
+            as ``place`` gave it): ``force / P`` on the vertices that move alone, the
+            linearised rigid motion ``B K^-1 B^T force`` on a rigid part.
+        sweeps: how many Jacobi updates of the pair rows' forces each iteration runs
+            (static): rows on one rigid part couple through its motion.
+    """
+
+    compliance: object
+    body: np.ndarray
+    respond: Callable
+    sweeps: int = 1
+
+
 class ContactSweep(NamedTuple):
     """What the contact iteration needs from a step's coordinates
     (:meth:`Coordinates.contact_sweep`).
@@ -505,6 +530,8 @@ class ContactSweep(NamedTuple):
             force; ``sqrt(scale)`` weighs it in Anderson's least squares, as ``sqrt(P)`` a
             position row).
         forces: ``X -> (e, 3)``: the contact forces that the extra rows hold, N.
+        rigid: ``None`` where every vertex moves alone, else the :class:`RigidParts` that
+            pair rows on vertices of rigid parts (bones, rigid bodies) need.
     """
 
     touching: object
@@ -513,6 +540,7 @@ class ContactSweep(NamedTuple):
     owners: np.ndarray
     scale: object
     forces: Callable
+    rigid: tuple | None = None
 
 
 class Integrator:

@@ -140,7 +140,7 @@ def test_reduced_coordinates_and_the_active_set_refuse_from_the_table(no_compili
     skeleton."""
     brick = RigidBody(box((0.02, 0.02, 0.02)), density=500.0, name="brick", x0=(0.2, 0.0, 0.0))
     with pytest.raises(SceneError, match="a scene with rigid bodies holds vertices in all three components only.*"
-                                         "it supports: contact, skeleton, rigid bodies, motion"):
+                                         "it supports: pair contact, contact, skeleton, rigid bodies, motion"):
         build([SoftBody(BAR, MATERIAL, fixed=[Fix("fixed"), Fix("ymin", axes="y")], name="bar"), brick])
     with pytest.raises(SceneError, match=r"Contact\(active_set=ActiveSet\(\)\) works in vertex coordinates.*"
                                          r"the scene has rigid bodies.*Contact\(active_set=None\)"):

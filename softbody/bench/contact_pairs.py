@@ -20,8 +20,15 @@ thickness 1 mm, relative tolerance 1e-8):
   shifted 2 mm along x from the one below. Reported: the largest displacement of a box's
   centre from its start (the issue's bar for a stack: 1 mm).
 
+* ``rigid``: rigid bodies (:class:`~softbody.rigid.RigidBody`, density 500 kg/m^3) in pair
+  rows, dt = 0.01 s, 2 s: a 2 cm rigid box set on the slab of ``rest`` (penetration, drift
+  as there); three 10 cm rigid boxes stacked on a plane obstacle (largest displacement of
+  a box's vertex); and the 2 cm box dropped from 2 cm above the slab (0.3 s at most 3000
+  iterations a step: whether every step converges; it does not yet, see
+  :mod:`softbody.contact.pairs`).
+
 ``iterations_median`` and ``iterations_max`` are over every step of the scenes above (the
-mu_s = mu_k run apart); ``broad_phase_share`` is the time of choosing a step's rows
+mu_s = mu_k run and the rigid drop apart); ``broad_phase_share`` is the time of choosing a step's rows
 (:meth:`~softbody.contact.pairs.Touch.select`: the broad phase, :mod:`softbody.contact.broad_phase`, and
 the nearest of its candidates) over the time of a step of the ``rest`` scene (medians,
 compile excluded).
@@ -165,6 +172,59 @@ def _stack(shift: float, quick: bool) -> dict:
             "moved_max_m": moved, "iterations": np.asarray(traj.info.iterations).tolist()}
 
 
+def _rigid(quick: bool) -> dict:
+    import jax.numpy as jnp
+
+    from softbody.contact.obstacles import Plane
+    from softbody.contact.pairs import Touch
+    from softbody.material import Material
+    from softbody.meshing.grid import grid_box
+    from softbody.model import Options, build, initial_state
+    from softbody.rigid import RigidBody
+    from softbody.scene import SoftBody
+    from softbody.simulate import rollout
+
+    def box(size, centre):
+        corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], float)
+        quads = [[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]]
+        triangles = np.array([t for q in quads for t in ([q[0], q[1], q[2]], [q[0], q[2], q[3]])])
+        return (corners - 0.5) * np.asarray(size) + np.asarray(centre), triangles
+
+    n_steps = 50 if quick else 200
+    slab = grid_box((0.1, 0.04, 0.01), (10, 4, 1), origin=(-0.03, -0.02, 0.0))
+    soft = SoftBody(slab, Material(E=1e6, nu=0.3, density=1000.0), fixed="zmin", name="slab")
+
+    def on_slab(height, steps, max_iter):
+        rigid = RigidBody(box((0.02, 0.02, 0.02), (0.0, 0.0, 0.02 + THICKNESS + height)), density=500.0, name="box")
+        model, params = build([soft, rigid], rows=[Touch("box", "slab", mu_s=0.5, mu_k=0.4, thickness=THICKNESS)],
+                              options=Options(dt=0.01, tol=1e-8, max_iter=max_iter))
+        traj = rollout(model, params, initial_state(model), n_steps=steps, throw=False)
+        return model, params, traj
+
+    model, params, traj = on_slab(0.0, n_steps, 10000)
+    gaps = _row_gaps(model, params, traj.x)
+    centre = np.asarray(traj.x)[:, slab.n_vertices:].mean(axis=1)
+    rest = {"converged": bool(np.all(np.asarray(traj.info.converged))),
+            "penetration_over_edge": float(max(0.0, -gaps.min()) / 0.02),
+            "drift_last_half_m": float(np.abs(centre[n_steps // 2:] - centre[n_steps // 2]).max()),
+            "iterations": np.asarray(traj.info.iterations).tolist()}
+    boxes = [RigidBody(box((0.1, 0.1, 0.1), (0.0, 0.0, 0.05 + i * (0.1 + THICKNESS))), density=500.0, name=f"b{i}")
+             for i in range(3)]
+    model, params = build(boxes, obstacles=[Plane(mu_s=0.5, mu_k=0.4)],
+                          rows=[Touch("b1", "b0", mu_s=0.5, mu_k=0.4, thickness=THICKNESS),
+                                Touch("b2", "b1", mu_s=0.5, mu_k=0.4, thickness=THICKNESS)],
+                          options=Options(dt=0.01, tol=1e-8, max_iter=10000))
+    traj = rollout(model, params, initial_state(model), n_steps=n_steps, throw=False)
+    x = np.asarray(traj.x)
+    stack = {"converged": bool(np.all(np.asarray(traj.info.converged))),
+             "moved_max_m": float(np.abs(x - x[0]).max()), "iterations": np.asarray(traj.info.iterations).tolist()}
+    _, _, traj = on_slab(0.02, 30, 3000)
+    drop = {"converged": bool(np.all(np.asarray(traj.info.converged))),
+            "results": np.asarray(traj.info.result).tolist(), "iterations": np.asarray(traj.info.iterations).tolist(),
+            "lowest_z_m": float(jnp.min(traj.x[:, slab.n_vertices:, 2]))}
+    return {"rest": rest, "stack": stack, "drop": drop}
+
+
 def run(out: Path, quick: bool) -> dict:
     import matplotlib
 
@@ -175,8 +235,10 @@ def run(out: Path, quick: bool) -> dict:
     slides = [_slide(dt, 0.5, 0.3) for dt in ((0.01,) if quick else (0.01, 0.005, 0.0025))]
     equal_cones = _slide(0.01, 0.3, 0.3)
     stacks = [_stack(shift, quick) for shift in (0.0, 0.002)]
+    rigid = _rigid(quick)
     iterations = np.concatenate([rest["iterations"], *[s["pairs_iterations"] for s in slides],
-                                 *[s["iterations"] for s in stacks]])
+                                 *[s["iterations"] for s in stacks], rigid["rest"]["iterations"],
+                                 rigid["stack"]["iterations"]])
 
     fig, (left, right) = plt.subplots(1, 2, figsize=(10, 4))
     dts = [s["dt"] for s in slides]
@@ -187,6 +249,8 @@ def run(out: Path, quick: bool) -> dict:
     left.legend(fontsize=8)
     right.plot(rest["iterations"], label="cube resting on slab")
     right.plot(slides[0]["pairs_iterations"], label="block sliding, dt = 0.01 s")
+    right.plot(rigid["rest"]["iterations"], label="rigid box resting on slab")
+    right.plot(rigid["stack"]["iterations"], label="three rigid boxes stacked")
     right.set(xlabel="step", ylabel="iterations", yscale="log", title="contact iterations per step")
     right.legend(fontsize=8)
     fig.tight_layout()
@@ -203,5 +267,9 @@ def run(out: Path, quick: bool) -> dict:
         "equal_cones_converged": equal_cones["pairs_converged"],
         "stack_moved_max_m": max(stacks[0]["moved_max_m"]),
         "stack_shifted_moved_max_m": max(stacks[1]["moved_max_m"]),
-        "rest": rest, "slide": slides, "slide_equal_cones": equal_cones, "stack": stacks,
+        "rigid_rest_penetration_over_edge": rigid["rest"]["penetration_over_edge"],
+        "rigid_rest_drift_m": rigid["rest"]["drift_last_half_m"],
+        "rigid_stack_moved_max_m": rigid["stack"]["moved_max_m"],
+        "rigid_drop_converged": rigid["drop"]["converged"],
+        "rest": rest, "slide": slides, "slide_equal_cones": equal_cones, "stack": stacks, "rigid": rigid,
     }

@@ -40,11 +40,21 @@ for the step). The candidates come from a broad phase over the step's swept boxe
 fixed capacity; a step that overflows it ends with ``RESULTS.overflow``, never with
 contacts silently lost.
 
+**Rigid bodies.** Either body may be a :class:`~softbody.rigid.RigidBody` (or a soft body
+with bones): its vertices move with its coordinates, so a row's force on them enters the
+reduced coordinates' sweep, its compliance there is the part's Delassus diagonal shared
+among the rows on the part, and each iteration runs several Jacobi sweeps of the rows
+(:attr:`softbody.skeleton.Reduced.pair_sweeps`), the part responding to each (rows on one
+rigid part couple through its motion; on a 2 cm rigid box resting on a soft slab, 10
+sweeps took a median 518 iterations a step, 30 took 175, 100 took 96, 30 the fastest).
+
 Limits of this version (refused by :func:`softbody.model.build` or by :class:`Touch`):
-soft bodies only (rigid bodies and skeletons step in reduced coordinates, which do not
-carry pair rows yet), two distinct bodies (no self-contact), vertex-triangle rows only
-(no edge-edge rows: a sharp edge crossing another body's edge between vertices is not
-seen), and no check of tunnelling through a thin body within one step.
+two distinct bodies (no self-contact), vertex-triangle rows only (no edge-edge rows: a
+sharp edge crossing another body's edge between vertices is not seen), and no check of
+tunnelling through a thin body within one step. A rigid box dropped from 2 cm onto the
+soft slab does not converge in the steps after its impact yet, nor the first step of a
+soft block set on a rigid box that rests on an obstacle (its obstacle rows and its pair
+rows are solved by separate sweeps).
 """
 
 from __future__ import annotations
@@ -112,7 +122,7 @@ def _barycentric(p, a, b, c):
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class Touch(PairRows):
-    """Contact with dry friction between the surfaces of two soft bodies of a scene.
+    """Contact with dry friction between the surfaces of two bodies of a scene (soft or rigid).
 
     Arguments:
         first, second: the two bodies' names (``SoftBody(..., name=...)``), distinct.
@@ -190,9 +200,6 @@ class Touch(PairRows):
             if name not in by_name:
                 raise SceneError(f"Touch names body {name!r}, which is not in the scene; its bodies are "
                                  f"{sorted(str(p.name) for p in parts)}")
-            if by_name[name].rigid is not None:
-                raise SceneError(f"Touch({self.first!r}, {self.second!r}): {name!r} is a rigid body; contact between "
-                                 "bodies is for soft bodies only so far (rigid bodies touch obstacles)")
         faces = [np.asarray(mesh.regions[name].faces, np.int64) for name in (self.first, self.second)]
         # the finer surface's vertices meet the coarser one's triangles at the thickness;
         # the coarser one's vertices meet the finer one's triangles at half of it

@@ -319,12 +319,36 @@ class Contact:
         extra, m = len(parts.owners), pairs.size
         rows = n + extra
 
+        if parts.rigid is None:  # every vertex moves alone, with compliance 1 / P
+            loaded, body = touching, np.arange(n)
+
+            def compliance(count):
+                return touching * count / p
+        else:
+            loaded = problem.free
+            c, body = parts.rigid.compliance, np.asarray(parts.rigid.body)
+
+            def compliance(count):
+                return c * count
+        parts_count = int(body.max()) + 1 if n else 0
+        earlier = np.tril(np.ones((4, 4), bool), -1)  # [j, i]: slot i comes before slot j
+
+        def split(pair):
+            """``(n, 1)``: each vertex's compliance times the number of live rows on its part
+            (mass splitting; a row counts once per part, however many of its vertices lie on it)."""
+            live = (pair.phi < _FAR)[:, None] & (pair.weights != 0)  # (m, 4)
+            label = jnp.asarray(body)[pair.vertices]
+            repeat = jnp.any((label[:, :, None] == label[:, None, :]) & live[:, None, :] & earlier, axis=2)
+            once = (live & ~repeat).ravel().astype(pair.phi.dtype)
+            count = jnp.zeros(parts_count, pair.phi.dtype).at[label.ravel()].add(once)
+            return compliance(jnp.maximum(count[body], 1.0)[:, None])
+
         def apply(x, q):
             x, force = (x[:rows], x[rows:]) if m else (x, None)
             placed, aux = parts.place(x)
             _, g, q = problem.evaluate(placed, q)
-            if m:  # the pair rows' forces join the sweep's right-hand side
-                g = g - touching * _spread(pairs.frame(_positions(placed, n)), force, n)
+            if m:  # the pair rows' forces join the sweep's right-hand side (rigid parts' rows too)
+                g = g - loaded * _spread(pairs.frame(_positions(placed, n)), force, n)
             y = placed - g / p  # one splitting sweep
             frame = _frames(problem.rows, y, vertices, t_end)
             x_new = jnp.where(
@@ -332,13 +356,20 @@ class Contact:
             )
             x_new, rest = parts.sweep(x, x_new, g, aux)
             if m:  # the pair rows' forces, updated at the new positions, move them
-                z = _positions(x_new, n)
-                pair = pairs.frame(z)
-                live = (pair.phi < _FAR)[:, None] & (pair.weights != 0)
-                count = jnp.zeros(n).at[pair.vertices.ravel()].add(live.ravel().astype(z.dtype))[:, None]
-                force_new = _pair_update(pair, force, z, problem.x_n, problem.v_n, h,
-                                         touching * jnp.maximum(count, 1.0) / p)
-                x_new = x_new.at[:n].add(touching * _spread(pair, force_new - force, n) / p)
+                def update(carry, _):
+                    x_new, force = carry
+                    z = _positions(x_new, n)
+                    pair = pairs.frame(z)
+                    force_new = _pair_update(pair, force, z, problem.x_n, problem.v_n, h, split(pair))
+                    delta = _spread(pair, force_new - force, n)
+                    if parts.rigid is None:
+                        return (x_new.at[:n].add(touching * delta / p), force_new), None
+                    return (parts.rigid.respond(x_new, aux, delta), force_new), None
+
+                if parts.rigid is None:
+                    (x_new, force_new), _ = update((x_new, force), None)
+                else:  # rows on rigid parts couple through the part's motion: several sweeps
+                    (x_new, force_new), _ = jax.lax.scan(update, (x_new, force), None, length=parts.rigid.sweeps)
                 rest = jnp.concatenate([rest, (force_new - force).ravel()])
                 x_new = jnp.concatenate([x_new, force_new])
             residual = norm(jnp.concatenate([(touching * p * (_positions(x_new, n) - placed)).ravel(), rest]))
@@ -367,7 +398,8 @@ class Contact:
         along the obstacle (see the comment in the code for the threshold). The forces on
         vertices that coordinates move as a whole (a skeleton's skin: rigid bodies, bones)
         are the extra rows of the iteration run again from ``x`` (the body barely moves,
-        its forces build up) to ``threshold``.
+        its forces build up) to ``threshold``; so are the forces of pair rows on such
+        vertices (grad Phi there also holds the part's own constraint forces).
 
         Arguments:
             problem: the step; coordinates: its unknowns.
@@ -379,8 +411,15 @@ class Contact:
             ``CONTACT_STATES`` (0: no contact, 1: sticking, 2: sliding).
         """
         p = self._sweep_diagonal(problem)
-        iteration = self.map(problem, coordinates)
+        pairs = _Pairs.select(problem, x)
+        iteration = self.map(problem, coordinates, pairs)
         parts = iteration.parts
+        n, rows = x.shape[0], x.shape[0] + len(parts.owners)
+        rigid_pairs = pairs.size and parts.rigid is not None
+        if len(parts.owners) or rigid_pairs:
+            # forces on what moves as a whole (skin, rigid parts' pair rows): the iteration
+            # run again from x (the body barely moves, its forces build up) to threshold
+            solved = self._iterate(iteration, iteration.lift(x), q, threshold, max_iter)
         x, _ = parts.place(x)
         _, g, _ = problem.evaluate(x, q)
         y = x - g / p
@@ -396,9 +435,8 @@ class Contact:
         # contact step itself is a tie at the cone's edge).
         weight = p[:, 0]
         if len(parts.owners):
-            solved = self._iterate(iteration, iteration.lift(x), q, threshold, max_iter)
             owners = jnp.asarray(parts.owners)
-            skin = parts.forces(solved.x)
+            skin = parts.forces(solved.x[:rows])
             frame_skin = _frames(problem.rows, x[owners], owners, problem.time + problem.dt)
             pushed = jnp.sum(skin * frame_skin[1], axis=-1) > 0
             contact = contact.at[owners].set(pushed)
@@ -410,9 +448,11 @@ class Contact:
         depth = jnp.maximum(jnp.sum(force * normal, axis=-1), 0.0) / weight
         sliding = slip_t > jnp.maximum(0.5 * (mu_s - mu_k), 1e-6) * depth
         state = jnp.where(contact, jnp.where(sliding, 2, 1), 0).astype(jnp.int8)
-        pairs = _Pairs.select(problem, x)
         if pairs.size:
             force, state = self._report_pairs(problem, pairs, x, g, p, force, state)
+        if rigid_pairs:  # on rigid parts grad Phi is not the rows' force (the part's constraints take a share)
+            on_rigid = (np.asarray(parts.rigid.body) >= n) & (state > 0)
+            force = jnp.where(on_rigid[:, None], _spread(pairs.frame(x), solved.x[rows:], n), force)
         return force, state
 
     def _report_pairs(self, problem: StepProblem, pairs: _Pairs, x, g, p, force, state):

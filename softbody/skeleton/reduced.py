@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from softbody._interfaces import Capabilities, Chart, ContactSweep, Coordinates
+from softbody._interfaces import Capabilities, Chart, ContactSweep, Coordinates, RigidParts
 from softbody.skeleton.condense import SchurFactor, _held, _solve_reduced, schur_factor
 from softbody.skeleton.joints import SkeletonError
 from softbody.skeleton.rig import Rig
@@ -62,8 +62,9 @@ class Reduced(Coordinates):
     eigenvalues in ``[-beta, beta]``, ``beta < 1`` (``B^T M_b B > 0`` as every bone has a
     volume). The residual is ``|P (x_new - x)|`` over the soft vertices together with the
     reduced force ``|B^T g_b|`` of the joints free to move: zero exactly at the step's
-    equilibrium with contact. Contact acts on the soft vertices: bones are meant to lie
-    inside the skin.
+    equilibrium with contact. Obstacle contact acts on the soft vertices and the skin (a
+    rigid body's surface); pair rows between bodies act on bone and rigid vertices too
+    (their forces enter the bones' reduced gradient, :class:`~softbody._interfaces.RigidParts`).
 
     Gradients: both adjoints. :class:`~softbody.gradients.Implicit` (the default) uses the
     reduced coordinates as its chart (:meth:`implicit_chart`): the step's solution is
@@ -77,6 +78,10 @@ class Reduced(Coordinates):
     Attributes:
         rig: the :class:`Rig` (the scene's skeleton bound to its mesh).
         backtracks: the most halvings of a step (static).
+        contact_sweeps: Jacobi sweeps of the skin's obstacle forces per contact iteration
+            (static).
+        pair_sweeps: Jacobi sweeps of the pair rows' forces per contact iteration where
+            pair rows meet bones or rigid bodies (static; see :mod:`softbody.contact.pairs`).
 
     Raises:
         SkeletonError: a bad attribute.
@@ -85,13 +90,12 @@ class Reduced(Coordinates):
     solvers = (LBFGS, LocalGlobal)
     capabilities = Capabilities(
         refuses={"partly held vertices": "holds vertices in all three components only (its reduced coordinates move "
-                                         "whole vertices)",
-                 "pair contact": "does not carry contact rows between bodies yet (its contact sweep moves bones and "
-                                 "rigid bodies by their obstacle rows alone)"},
+                                         "whole vertices)"},
         instead="fix them with fixed=<selection> (or a Fix with axes='xyz'), or weld a bone with a root Fixed() joint")
     rig: Rig
     backtracks: int = 8
     contact_sweeps: int = 10
+    pair_sweeps: int = 30
 
     def __post_init__(self):
         if not isinstance(self.rig, Rig):
@@ -165,6 +169,26 @@ class Reduced(Coordinates):
         def forces(x):
             return scale * x[n:]
 
+        # Pair rows on bone vertices: each skin vertex's Delassus diagonal at the step's
+        # start (mean over the axes), shared among the rows on its tree.
+        jac_n = rig._jacobian(rig.pose(rig.coordinates(problem.x_n[bone])))
+        w_n = delassus_diagonal(jac_n[skin], inverse(jac_n, jnp.ones(rig.n_dofs, p.dtype)))  # (c, 3)
+        soft = problem.free * (1.0 - rig.is_bone)
+        compliance = (soft / p).at[index].set(w_n.mean(axis=1)[:, None])
+        body = np.arange(n)
+        body[rig.bone] = n + rig.tree[rig.vertex_link]
+
+        def respond(x, aux, force):
+            """The soft vertices move by ``force / P``, the bones by ``B K^-1 B^T force``."""
+            z, pose = aux
+            jac = rig._jacobian(pose)
+            g_z = -rig.reduce(pose, force[bone])
+            move = 1.0 - _held(rig, z, g_z)
+            shift = jnp.einsum("vik,k->vi", jac, inverse(jac, move) @ (-g_z))
+            return x.at[:n].add(soft * force / p).at[bone].add(shift)
+
+        rigid = RigidParts(compliance, body, respond, self.pair_sweeps)
+
         if not len(skin):
             def sweep(x, x_new, g, aux):
                 z, pose = aux
@@ -176,12 +200,10 @@ class Reduced(Coordinates):
                 return x_new.at[bone].set(rig.positions(rig.retract(z, -d_z))), g_z * move
 
             scale = jnp.zeros((0, 1), p.dtype)
-            return ContactSweep(problem.free * (1.0 - rig.is_bone), place, sweep, owners, scale, forces)
+            return ContactSweep(soft, place, sweep, owners, scale, forces, rigid)
 
         # The extra rows hold the skin's contact forces over the effective mass of each skin
         # vertex at the step's start (so that they are displacements, as the other rows).
-        jac_n = rig._jacobian(rig.pose(rig.coordinates(problem.x_n[bone])))
-        w_n = delassus_diagonal(jac_n[skin], inverse(jac_n, jnp.ones(rig.n_dofs, p.dtype)))
         scale = (3.0 / jnp.maximum(w_n.sum(axis=1), 1e-300))[:, None]
 
         def sweep(x, x_new, g, aux):
@@ -227,7 +249,7 @@ class Reduced(Coordinates):
             residual = jnp.concatenate([net * move, (force_new - force).ravel()])
             return jnp.concatenate([placed, force_new / scale]), residual
 
-        return ContactSweep(problem.free * (1.0 - rig.is_bone), place, sweep, owners, scale, forces)
+        return ContactSweep(soft, place, sweep, owners, scale, forces, rigid)
 
     def chart(self, problem):
         """The reduced coordinates as a :class:`~softbody._interfaces.Chart` for the step
