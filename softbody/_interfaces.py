@@ -474,6 +474,11 @@ class Chart:
         """``H0 r``: the initial inverse Hessian (the PD matrix's solve) on a tangent."""
         raise NotImplementedError
 
+    def project(self, data, d):
+        """A direction ``d`` with what may not move this iteration (as :meth:`gradient`
+        masks it) taken out; the identity unless the chart holds some of its coordinates."""
+        return d
+
     def move(self, point, step):
         """The point reached from ``point`` along the tangent ``step``."""
         raise NotImplementedError

@@ -283,7 +283,7 @@ def descend(chart: Chart, history: int, x0: Array, q0: Array, threshold: Array, 
             return chart.precondition(point, data, v)
 
         if history:
-            d = lbfgs_direction(r, *lbfgs, precondition)
+            d = chart.project(data, lbfgs_direction(r, *lbfgs, precondition))
             d = jax.lax.cond(jnp.sum(r * d) < 0, lambda: d, lambda: -precondition(r))
         else:
             d = -precondition(r)

@@ -308,6 +308,10 @@ class _ReducedChart(Chart):
         d, d_z = _solve_reduced(self.problem.prepared, self.rig, point[2], r_f, r_z * move, locked)
         return self._flat(d, d_z * move)
 
+    def project(self, data, d):
+        d_f, d_z = self._unflat(d)
+        return self._flat(d_f, d_z * (1.0 - data[1]))
+
     def move(self, point, step):
         x, z, _ = point
         step_f, step_z = self._unflat(step)
