@@ -500,9 +500,9 @@ class RigidParts(NamedTuple):
         body: ``(n,)`` static ints, the part of each vertex: its own index for a vertex
             that moves alone, one label ``>= n`` for all vertices of one rigid part. Pair
             rows split a part's compliance among the rows that touch it (mass splitting).
-        respond: ``(X_new, aux, force (n, 3)) -> X_new``: the iterate moved by its
-            coordinates' response to the extra forces ``force`` on the vertices (``aux``
-            as ``place`` gave it): ``force / P`` on the vertices that move alone, the
+        respond: ``aux -> ((X_new, force (n, 3)) -> X_new)``: for an iteration's ``aux``
+            (as ``place`` gave it), the iterate moved by its coordinates' response to the
+            extra forces ``force`` on the vertices: ``force / P`` on the vertices that move alone, the
             linearised rigid motion ``B K^-1 B^T force`` on a rigid part.
         sweeps: how many Jacobi updates of the pair rows' forces each iteration runs
             (static): rows on one rigid part couple through its motion.

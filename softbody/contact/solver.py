@@ -356,6 +356,8 @@ class Contact:
             )
             x_new, rest = parts.sweep(x, x_new, g, aux)
             if m:  # the pair rows' forces, updated at the new positions, move them
+                respond = None if parts.rigid is None else parts.rigid.respond(aux)
+
                 def update(carry, _):
                     x_new, force = carry
                     z = _positions(x_new, n)
@@ -364,7 +366,7 @@ class Contact:
                     delta = _spread(pair, force_new - force, n)
                     if parts.rigid is None:
                         return (x_new.at[:n].add(touching * delta / p), force_new), None
-                    return (parts.rigid.respond(x_new, aux, delta), force_new), None
+                    return (respond(x_new, delta), force_new), None
 
                 if parts.rigid is None:
                     (x_new, force_new), _ = update((x_new, force), None)

@@ -178,14 +178,19 @@ class Reduced(Coordinates):
         body = np.arange(n)
         body[rig.bone] = n + rig.tree[rig.vertex_link]
 
-        def respond(x, aux, force):
-            """The soft vertices move by ``force / P``, the bones by ``B K^-1 B^T force``."""
+        def respond(aux):
+            """The soft vertices move by ``force / P``, the bones by ``B K^-1 B^T force``
+            (the Jacobian at ``aux``'s pose made once for every sweep of an iteration)."""
             z, pose = aux
             jac = rig._jacobian(pose)
-            g_z = -rig.reduce(pose, force[bone])
-            move = 1.0 - _held(rig, z, g_z)
-            shift = jnp.einsum("vik,k->vi", jac, inverse(jac, move) @ (-g_z))
-            return x.at[:n].add(soft * force / p).at[bone].add(shift)
+
+            def move_by(x, force):
+                g_z = -rig.reduce(pose, force[bone])
+                move = 1.0 - _held(rig, z, g_z)
+                shift = jnp.einsum("vik,k->vi", jac, inverse(jac, move) @ (-g_z))
+                return x.at[:n].add(soft * force / p).at[bone].add(shift)
+
+            return move_by
 
         rigid = RigidParts(compliance, body, respond, self.pair_sweeps)
 
