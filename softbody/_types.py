@@ -350,11 +350,16 @@ class Prepared(eqx.Module):
     obstacles: tuple  # per-obstacle parameters (Params.obstacles)
     data: Array  # (nnz,) PD matrix values
     factor: object  # linear-solver factor
-    inertia: Array  # scalar: 1/h^2 for dynamics, 0 for statics
     step: object = None  # the step's per-rollout data (Step.prepare)
     rows: tuple = ()  # per-generator parameters (Params.rows)
-    # the time step h the matrix was prefactored for (static: it fixes the programs); steps read it
-    dt: float = eqx.field(static=True, default=0.0)
+    # the objective's inertia term (softbody.inertia.Dynamics(h) or Statics(); static: it fixes
+    # the programs): a time step of size h the matrix was prefactored for, or a static solve
+    inertia: object = eqx.field(static=True, default=None)
+
+    @property
+    def dt(self) -> float:
+        """The step size ``h`` the steps take (0 for a static solve)."""
+        return self.inertia.dt
 
 
 class RESULTS(enum.IntEnum):

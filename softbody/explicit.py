@@ -149,8 +149,7 @@ def critical_time_step(model: Model, params: Params, x=None, iterations: int = 3
     prep = prepare(model, params, static=True)
     x = prep.x_rest if x is None else jnp.asarray(x)
     q0 = rot.cold_start(deformation_gradient(model, prep.dminv, x))
-    evaluate, _ = step_objective(model, prep, x, jnp.zeros_like(x), q0, jnp.zeros(model.n_channels), None,
-                                 static=True)
+    evaluate, _ = step_objective(model, prep, x, jnp.zeros_like(x), q0, jnp.zeros(model.n_channels), None)
     q = jax.lax.fori_loop(0, 16, lambda _, q: rot.rotation(deformation_gradient(model, prep.dminv, x), q, 1)[1], q0)
     scale = jnp.asarray(model.free_mask) / jnp.sqrt(jnp.maximum(prep.mass, 1e-300))
 

@@ -72,8 +72,8 @@ class Adjoint:
     #: split the time loop into checkpointed segments of about sqrt(n_steps) steps
     segment_checkpoints: bool = False
 
-    def solve(self, model, prep, state, activation, force, *, static: bool):
-        """One step (or static solve): returns ``(Solution, StepInfo)``."""
+    def solve(self, model, prep, state, activation, force):
+        """One step (or static solve, as ``prep.inertia`` says): returns ``(Solution, StepInfo)``."""
         raise NotImplementedError
 
     def loop(self, body: Callable, carry, inputs, n_steps: int):
@@ -129,12 +129,12 @@ class Unrolled(Adjoint):
                               "differentiated through the fixed point of its contact iteration (softbody.contact.fixed_point)"},
         instead="use the default adjoint, Implicit() (or ImplicitForward())")
 
-    def solve(self, model, prep, state, activation, force, *, static):
+    def solve(self, model, prep, state, activation, force):
 
         unroll = Unroll(extra=self.extra_iterations, remat=self.remat)
 
         def run(prep, state, activation, force):
-            return solve_step(model, prep, state, activation, force, static=static, unrolled=unroll)
+            return solve_step(model, prep, state, activation, force, unrolled=unroll)
 
         if self.remat:
             run = jax.checkpoint(run, prevent_cse=False)
@@ -164,15 +164,15 @@ class Implicit(Adjoint):
     max_iter: int = 2000
     segment_checkpoints: bool = False
 
-    def solve(self, model, prep, state, activation, force, *, static):
+    def solve(self, model, prep, state, activation, force):
 
         if model.has_contact:
             # Contact adds impulses beyond the stationarity of Phi: the contact solver
             # carries its own implicit derivative (active set held fixed).
-            return solve_step(model, prep, state, activation, force, static=static)
+            return solve_step(model, prep, state, activation, force)
 
         def forward(prep, x_n, v_n, q_n, t, activation, force):
-            sol, info = solve_step(model, prep, State(x_n, v_n, q_n, t), activation, force, static=static)
+            sol, info = solve_step(model, prep, State(x_n, v_n, q_n, t), activation, force)
             return sol, info
 
         @jax.custom_vjp
@@ -184,19 +184,19 @@ class Implicit(Adjoint):
             # Rotations are the largest per-step arrays (4 per tet): keep the step-start
             # ones only where stiffness damping reads them, and recompute the solution's
             # in the backward pass (the maximising rotation is unique on non-inverted tets).
-            q_keep = q_n if (model.stiffness_damping and not static) else None
+            q_keep = q_n if prep.inertia.damped(model.stiffness_damping) else None
             return (sol, info), (prep, x_n, v_n, q_keep, t, activation, force, sol.x)
 
         def solve_bwd(res, cts):
             prep, x_n, v_n, q_n, t, activation, force, xs = res
             xbar = cts[0].x
             free = jnp.asarray(model.free_mask)
-            system = _StepSystem.at(model, prep, x_n, v_n, q_n, activation, force, xs, static=static)
+            system = _StepSystem.at(model, prep, x_n, v_n, q_n, activation, force, xs)
             q_n = system.q_n
             tol = self.tol if self.tol is not None else min(max(model.options.tol, 1e-10), 1e-5)
             lam = system.push(_pcg(system.hvp, system.precondition, system.pull(xbar), tol, self.max_iter))
             ct_prep, ct_xn, ct_vn, ct_qn, ct_a, ct_f = step_gradient_vjp(
-                model, prep, x_n, v_n, q_n, activation, force, xs, system.qs, -lam, static=static)
+                model, prep, x_n, v_n, q_n, activation, force, xs, system.qs, -lam)
             ct_xn = ct_xn + xbar * (1.0 - free)  # fixed vertices: x* = x_n there
             return ct_prep, ct_xn, ct_vn, ct_qn, jnp.zeros_like(t), ct_a, ct_f
 
@@ -220,22 +220,22 @@ class ImplicitForward(Implicit):
     not both, so the two modes are two adjoints.)
     """
 
-    def solve(self, model, prep, state, activation, force, *, static):
+    def solve(self, model, prep, state, activation, force):
 
         if model.has_contact:
             # The contact solver's own implicit derivative is a custom JVP already.
-            return solve_step(model, prep, state, activation, force, static=static)
+            return solve_step(model, prep, state, activation, force)
 
         @jax.custom_jvp
         def solve(prep, x_n, v_n, q_n, t, activation, force):
-            return solve_step(model, prep, State(x_n, v_n, q_n, t), activation, force, static=static)
+            return solve_step(model, prep, State(x_n, v_n, q_n, t), activation, force)
 
         @solve.defjvp
         def solve_jvp(primals, tangents):
             prep, x_n, v_n, q_n, t, activation, force = primals
             sol, info = solve(*primals)
             free = jnp.asarray(model.free_mask)
-            system = _StepSystem.at(model, prep, x_n, v_n, q_n, activation, force, sol.x, static=static)
+            system = _StepSystem.at(model, prep, x_n, v_n, q_n, activation, force, sol.x)
             args = (prep, x_n, v_n, q_n, activation, force)
             dargs = tangents[:4] + tangents[5:]
             _, dg = jax.jvp(lambda *a: system.residual(sol.x, *a), args, dargs)
@@ -279,7 +279,7 @@ class _StepSystem(NamedTuple):
     push: Callable  # system space -> (n, 3)
 
     @classmethod
-    def at(cls, model, prep, x_n, v_n, q_n, activation, force, xs, *, static: bool) -> "_StepSystem":
+    def at(cls, model, prep, x_n, v_n, q_n, activation, force, xs) -> "_StepSystem":
         """The system of the step from ``(x_n, v_n, q_n)`` whose solution is ``xs``
         (``q_n`` may be ``None`` where the objective does not read it)."""
 
@@ -289,7 +289,7 @@ class _StepSystem(NamedTuple):
             q_n = qs  # unread: the objective reads q_n only with stiffness damping
 
         def residual(x, prep, x_n, v_n, q_n, activation, force):
-            evaluate, _ = step_objective(model, prep, x_n, v_n, q_n, activation, force, static=static)
+            evaluate, _ = step_objective(model, prep, x_n, v_n, q_n, activation, force)
             return evaluate(x, qs)[1]
 
         args = (prep, x_n, v_n, q_n, activation, force)
@@ -299,7 +299,7 @@ class _StepSystem(NamedTuple):
             solver, pattern = model.linear_solver, model.pattern
             # The per-tet stress derivative is assembled once; each CG iteration then
             # costs gathers and a 9 x 9 product per tet (step_hessian).
-            hvp = step_hessian(model, prep, x_n, v_n, q_n, activation, force, xs, qs, static=static)
+            hvp = step_hessian(model, prep, x_n, v_n, q_n, activation, force, xs, qs)
             return cls(qs, q_n, residual, hvp, lambda r: solver.solve(pattern, factor, r),
                        lambda b: b * free, lambda y: y)
         # Stationary in the chart's coordinates d (x = embed(d)): the reduced gradient
@@ -311,7 +311,7 @@ class _StepSystem(NamedTuple):
         zero = jnp.zeros(size, xs.dtype)
         _, push = jax.linearize(embed, zero)
         pull = jax.linear_transpose(push, zero)
-        hessian = step_hessian(model, prep, x_n, v_n, q_n, activation, force, xs, qs, static=static)
+        hessian = step_hessian(model, prep, x_n, v_n, q_n, activation, force, xs, qs)
         g = residual(xs, *args)
         _, curvature = jax.linearize(lambda d: jax.vjp(embed, d)[1](g)[0], zero)
 

@@ -27,6 +27,7 @@ from softbody.scene import SoftBody, assemble
 from softbody._types import Model, Options, Params, Prepared, SceneError, State, scene_features
 from softbody.contact import Contact
 from softbody.elastic import deformation_gradient, local_matrices, rest_geometry
+from softbody.inertia import Dynamics, Statics
 from softbody.gradients import Adjoint, Implicit
 from softbody.material import pd_weights
 from softbody.contact.obstacles import ObstacleRows
@@ -383,10 +384,10 @@ def prepare(model: Model, params: Params, *, static: bool = False, dt: float | N
     x_rest = jnp.asarray(model.mesh.points) + params.morph
 
     if static:
-        inertia, weight = jnp.asarray(0.0), w_s + model.step.volume_weight * w_v
+        inertia, weight = Statics(), w_s + model.step.volume_weight * w_v
         diag_mass = jnp.zeros_like(mass)
     else:
-        inertia, weight = jnp.asarray(1.0 / h**2), w_s + model.step.volume_weight * w_v + w_b / h
+        inertia, weight = Dynamics(h), w_s + model.step.volume_weight * w_v + w_b / h
         diag_mass = mass / h**2 + mass_alpha / h
     local = local_matrices(dminv, volume * weight)  # (t, 4, 4)
     term_prep = tuple(term.prepare(model, p, dminv, volume) for term, p in zip(model.terms, params.actuators))
@@ -414,4 +415,4 @@ def prepare(model: Model, params: Params, *, static: bool = False, dt: float | N
     return Prepared(dminv=dminv, volume=volume, mass=mass[:, None], mass_alpha=mass_alpha[:, None],
                     w_s=w_s, w_v=w_v, w_b=w_b, x_rest=x_rest, terms=term_prep,
                     obstacles=tuple(params.obstacles), rows=tuple(params.rows), data=data,
-                    factor=factor, inertia=inertia, step=model.step.prepare(model, data, factor), dt=h)
+                    factor=factor, step=model.step.prepare(model, data, factor), inertia=inertia)

@@ -6,6 +6,7 @@ adjoint (:mod:`softbody.gradients`) are built on :func:`step_objective`.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Callable, NamedTuple
 
 import jax
@@ -16,6 +17,7 @@ from softbody._interfaces import ElementTerm, VertexTerm, VolumeTerm
 from softbody.elastic import (corotated, deformation_gradient, scatter_stress, shape_gradients, strain_rate_damping,
                               stress_derivative_product)
 from softbody._types import RESULTS, Model, Prepared, State, StepInfo
+from softbody.inertia import Statics
 from softbody.contact.obstacles import ObstacleRows
 from softbody.solvers import Solution, StepProblem
 
@@ -88,21 +90,14 @@ class _Terms(NamedTuple):
     scale: Array
 
 
-def _terms(model: Model, prep: Prepared, x_n, v_n, q_n, activation, force, static: bool) -> _Terms:
+def _terms(model: Model, prep: Prepared, x_n, v_n, q_n, activation, force) -> _Terms:
     h = prep.dt
     gravity = jnp.asarray(model.options.gravity)
     free = jnp.asarray(model.free_mask)
-    mass = prep.mass
-    load = mass * gravity + (0.0 if force is None else force)
-    if static:
-        s = x_n
-        scale = jnp.sqrt(jnp.sum((load * free) ** 2))
-    else:
-        s = x_n + h * v_n + h * h * load / jnp.maximum(mass, 1e-300)
-        s = jnp.where(free > 0, s, x_n)
-        scale = jnp.sqrt(jnp.sum((mass * s * free) ** 2)) / h**2
+    load = prep.mass * gravity + (0.0 if force is None else force)
+    inertia, scale = prep.inertia.energy(x_n, v_n, prep.mass, prep.mass_alpha, load, free)
     iters = model.options.rotation_iterations
-    damped = not static and model.stiffness_damping
+    damped = prep.inertia.damped(model.stiffness_damping)
     if damped:
         f_n = deformation_gradient(model, prep.dminv, x_n)
         r_n, _ = rot.rotation(f_n, q_n, iters + 1)
@@ -118,18 +113,12 @@ def _terms(model: Model, prep: Prepared, x_n, v_n, q_n, activation, force, stati
     def vertex(x):
         return vertex_energy(model, prep, x, slices)
 
-    def inertia(x):
-        if static:
-            return -jnp.sum(load * x), -load
-        dx, dn = (x - s) * free, (x - x_n) * free
-        phi = 0.5 * jnp.sum(mass * dx * dx) / h**2 + 0.5 * jnp.sum(prep.mass_alpha * dn * dn) / h
-        return phi, mass * dx / h**2 + prep.mass_alpha * dn / h
-
     return _Terms(tet=tet, vertex=vertex, inertia=inertia, scale=scale)
 
 
-def step_objective(model: Model, prep: Prepared, x_n, v_n, q_n, activation, force, *, static: bool):
-    """The step objective: ``(evaluate, scale)``.
+def step_objective(model: Model, prep: Prepared, x_n, v_n, q_n, activation, force):
+    """The step objective (a time step or a static solve, as ``prep.inertia`` says):
+    ``(evaluate, scale)``.
 
     ``evaluate(x, q) -> (phi, g, q)`` gives ``Phi(x)``, its gradient ``(n, 3)`` on the free
     vertices (zero on fixed ones, whose positions are taken from ``x_n`` whatever ``x``
@@ -137,7 +126,7 @@ def step_objective(model: Model, prep: Prepared, x_n, v_n, q_n, activation, forc
     (dynamics) or ``|f|`` (statics), the denominator of the relative residual.
     """
     free = jnp.asarray(model.free_mask)
-    terms = _terms(model, prep, x_n, v_n, q_n, activation, force, static)
+    terms = _terms(model, prep, x_n, v_n, q_n, activation, force)
 
     def evaluate(x, q):
         x = jnp.where(free > 0, x, x_n)
@@ -153,7 +142,7 @@ def step_objective(model: Model, prep: Prepared, x_n, v_n, q_n, activation, forc
     return evaluate, terms.scale
 
 
-def step_hessian(model: Model, prep: Prepared, x_n, v_n, q_n, activation, force, x, q, *, static: bool):
+def step_hessian(model: Model, prep: Prepared, x_n, v_n, q_n, activation, force, x, q):
     """The step objective's Hessian at ``x`` as a linear map ``v (n, 3) -> H v (n, 3)``.
 
     It equals the linearisation of ``evaluate(., q)[1]`` of :func:`step_objective` (free
@@ -169,16 +158,15 @@ def step_hessian(model: Model, prep: Prepared, x_n, v_n, q_n, activation, force,
         x: ``(n, 3)`` positions; q: ``(4, t)`` rotations of ``x`` (warm start, refined as in
             ``evaluate``); the rest as for :func:`step_objective`.
     """
-    h = prep.dt
     free = jnp.asarray(model.free_mask)
-    terms = _terms(model, prep, x_n, v_n, q_n, activation, force, static)
+    terms = _terms(model, prep, x_n, v_n, q_n, activation, force)
     x = jnp.where(free > 0, x, x_n)
     f = deformation_gradient(model, prep.dminv, x)
     _, tangent = jax.linearize(lambda f: terms.tet(f, q)[1], f)
     # Nine tangents one by one (vmapped, the same took 3-4x longer on CPU).
     eye = jnp.eye(9, dtype=f.dtype).reshape(9, 3, 3, 1)
     dpdf = jnp.stack([tangent(jnp.broadcast_to(e, f.shape)) for e in eye])  # (kl, i, j, t)
-    diagonal = 0.0 if static else prep.mass / h**2 + prep.mass_alpha / h
+    diagonal = prep.inertia.hessian_diagonal(prep.mass, prep.mass_alpha)
     vertex = jax.linearize(lambda x: terms.vertex(x)[1], x)[1] if has_vertex_terms(model) else None
 
     product = stress_derivative_product(model, prep.dminv, dpdf)
@@ -193,8 +181,7 @@ def step_hessian(model: Model, prep: Prepared, x_n, v_n, q_n, activation, force,
     return hvp
 
 
-def step_gradient_vjp(model: Model, prep: Prepared, x_n, v_n, q_n, activation, force, x, q, lam,
-                      *, static: bool) -> tuple:
+def step_gradient_vjp(model: Model, prep: Prepared, x_n, v_n, q_n, activation, force, x, q, lam) -> tuple:
     """Cotangents of ``(prep, x_n, v_n, q_n, activation, force)`` for the cotangent ``lam``
     of the step gradient ``g = evaluate(x, q)[1]`` of :func:`step_objective`, i.e. the
     gradient of ``lam . g`` with respect to those arguments at fixed ``x``.
@@ -222,8 +209,8 @@ def step_gradient_vjp(model: Model, prep: Prepared, x_n, v_n, q_n, activation, f
     sg = jax.lax.stop_gradient
 
     def surrogate(prep, x_n, v_n, q_n, activation, force):
-        terms = _terms(model, prep, x_n, v_n, q_n, activation, force, static)
-        held = _terms(model, *sg((prep, x_n, v_n, q_n, activation, force)), static)
+        terms = _terms(model, prep, x_n, v_n, q_n, activation, force)
+        held = _terms(model, *sg((prep, x_n, v_n, q_n, activation, force)))
         y = jnp.where(free > 0, x, x_n)
         f = deformation_gradient(model, prep.dminv, y)
         d = deformation_gradient(model, prep.dminv, lam)
@@ -248,14 +235,15 @@ def contact_rows(model: Model, prep: Prepared) -> tuple:
     return obstacles + tuple(zip(model.rows, prep.rows))
 
 
-def step_problem(model: Model, prep: Prepared, state: State, activation, force, *, static: bool):
-    """The :class:`~softbody.solvers.StepProblem` of one step (or static solve) from ``state``.
+def step_problem(model: Model, prep: Prepared, state: State, activation, force):
+    """The :class:`~softbody.solvers.StepProblem` of one step (or static solve, as
+    ``prep.inertia`` says) from ``state``.
 
     Returns:
         ``(problem, x0, threshold, scale)``: the problem, the start iterate ``(n, 3)``, the
         force residual to reach and the residual's scale (see :func:`step_objective`).
     """
-    evaluate, scale = step_objective(model, prep, state.x, state.v, state.rot, activation, force, static=static)
+    evaluate, scale = step_objective(model, prep, state.x, state.v, state.rot, activation, force)
     solver = model.linear_solver
     pattern = model.pattern
     opts = model.options
@@ -264,19 +252,20 @@ def step_problem(model: Model, prep: Prepared, state: State, activation, force, 
         evaluate=evaluate,
         precondition=lambda g: solver.solve(pattern, prep.factor, g),
         diagonal=prep.data[jnp.asarray(model.diag_to_data)][:, None],
-        x_n=state.x, v_n=state.v, mass=prep.mass, free=free, dt=0.0 if static else prep.dt,
+        x_n=state.x, v_n=state.v, mass=prep.mass, free=free, dt=prep.dt,
         time=state.t, rows=contact_rows(model, prep), prepared=prep.step)
-    x0 = state.x if static else jnp.where(free > 0, state.x + prep.dt * state.v, state.x)
-    if static:
+    x0 = prep.inertia.start(state.x, state.v, free)
+    if prep.inertia.static:
         # Actuators may load a body with no external force: measure the residual against
         # the load and the initial force imbalance together.
         scale = scale + jnp.sqrt(jnp.sum(evaluate(x0, state.rot)[1] ** 2))
     return problem, x0, opts.tol * scale + opts.atol, scale
 
 
-def solve_step(model: Model, prep: Prepared, state: State, activation, force, *, static: bool,
+def solve_step(model: Model, prep: Prepared, state: State, activation, force, *,
                unrolled=False) -> tuple[Solution, StepInfo]:
-    """Run the model's composed step (:class:`softbody.solvers.Step`) on one step (or a static solve).
+    """Run the model's composed step (:class:`softbody.solvers.Step`) on one step (or a static
+    solve, as ``prep.inertia`` says).
 
     ``unrolled=Unroll(extra=k)`` runs a fixed-trip loop that reverse-mode autodiff
     differentiates as it ran, with ``k`` iterations after convergence (see
@@ -284,7 +273,7 @@ def solve_step(model: Model, prep: Prepared, state: State, activation, force, *,
     ``False`` runs a ``while_loop`` (differentiate it with the implicit adjoint,
     :class:`softbody.gradients.Implicit`).
     """
-    problem, x0, threshold, scale = step_problem(model, prep, state, activation, force, static=static)
+    problem, x0, threshold, scale = step_problem(model, prep, state, activation, force)
     opts = model.options
     sol = model.step.run(problem, x0, state.rot, threshold, opts.max_iter, unrolled)
     inverted = jnp.sum(rot.det3(deformation_gradient(model, prep.dminv, sol.x)) <= 0)
@@ -315,7 +304,9 @@ def accelerations(model: Model, prep: Prepared, state: State, activation, force)
         of the local step at ``state.x``.
     """
     x, v = state.x, state.v
-    evaluate, _ = step_objective(model, prep, x, jnp.zeros_like(x), None, activation, force, static=True)
+    # The static objective's gradient is dE/dx - M g - f_ext: the forces without inertia.
+    forces = dataclasses.replace(prep, inertia=Statics())
+    evaluate, _ = step_objective(model, forces, x, jnp.zeros_like(x), None, activation, force)
     free = jnp.asarray(model.free_mask)
     _, grad, q = evaluate(x, state.rot)  # dE/dx - M g - f_ext on the free vertices
     total = -grad - prep.mass_alpha * v

@@ -116,25 +116,25 @@ def _tet_dofs(model: Model) -> np.ndarray:
 # --------------------------------------------------------------------------------------
 
 
-@functools.partial(jax.jit, static_argnames=("model", "static"))
-def _evaluate(model, prep, x_n, v_n, q_n, activation, force, x, q, *, static):
+@functools.partial(jax.jit, static_argnames=("model",))
+def _evaluate(model, prep, x_n, v_n, q_n, activation, force, x, q):
     """``(Phi, grad Phi (n, 3), exact rotations of x, convergence scale)`` at ``x``, the
     rotations warm-started from ``q``."""
-    evaluate, scale = step_objective(model, prep, x_n, v_n, q_n, activation, force, static=static)
+    evaluate, scale = step_objective(model, prep, x_n, v_n, q_n, activation, force)
     q = _exact_rotations(deformation_gradient(model, prep.dminv, x), q)
     phi, grad, q = evaluate(x, q)
     return phi, grad, q, scale
 
 
-@functools.partial(jax.jit, static_argnames=("model", "static"))
-def _element_hessians(model, prep, x_n, q_n, activation, x, q, *, static):
+@functools.partial(jax.jit, static_argnames=("model",))
+def _element_hessians(model, prep, x_n, q_n, activation, x, q):
     """Per-tet Hessians ``(t, 12, 12)`` of the elastic, element actuator and strain-rate
     damping energies at ``x`` (exact rotations ``q``)."""
-    h = model.options.dt
+    h = prep.dt
     slices = activation_slices(model, activation)
     target = volume_target(model, prep, slices)
     damping = None
-    if not static and model.stiffness_damping:
+    if prep.inertia.damped(model.stiffness_damping):
         # The damping frame R_n, found as the step objective finds it.
         f_n = deformation_gradient(model, prep.dminv, x_n)
         r_n, _ = rot.rotation(f_n, q_n, model.options.rotation_iterations + 1)
@@ -182,7 +182,7 @@ class _Assembler:
         return sp.coo_matrix((data, (rows, cols)), shape=(self.size, self.size)).tocsc()
 
 
-def _newton(model, prep, x_n, v_n, q_n, activation, force, x0, *, static, tol, max_iter):
+def _newton(model, prep, x_n, v_n, q_n, activation, force, x0, *, tol, max_iter):
     """Newton's method with a backtracking line search.
 
     Returns:
@@ -195,16 +195,13 @@ def _newton(model, prep, x_n, v_n, q_n, activation, force, x0, *, static, tol, m
     if not (tol > 0 and int(max_iter) >= 1):
         raise ValueError(f"Newton needs tol > 0 and max_iter >= 1, got tol={tol}, max_iter={max_iter}")
     assembler = _Assembler(model)
-    h = model.options.dt
     atol = model.options.atol
-    if static:
-        diagonal = np.zeros(3 * model.n_vertices)
-    else:
-        diagonal = np.repeat(np.asarray(prep.mass[:, 0] / h**2 + prep.mass_alpha[:, 0] / h), 3)
+    inertia = np.asarray(prep.inertia.hessian_diagonal(prep.mass, prep.mass_alpha))  # (n, 1), or 0 in statics
+    diagonal = np.repeat(np.broadcast_to(inertia, (model.n_vertices, 1))[:, 0], 3)
     vertex_terms = has_vertex_terms(model)
 
     def evaluate(x, q):
-        phi, g, q, scale = _evaluate(model, prep, x_n, v_n, q_n, activation, force, x, q, static=static)
+        phi, g, q, scale = _evaluate(model, prep, x_n, v_n, q_n, activation, force, x, q)
         return float(phi), np.asarray(g).reshape(-1)[assembler.free_dofs], q, float(scale)
 
     x = jnp.asarray(x0)
@@ -219,7 +216,7 @@ def _newton(model, prep, x_n, v_n, q_n, activation, force, x0, *, static, tol, m
             return x, q, k, evaluations, gnorm / (scale + atol / tol)
         if k == max_iter:
             break
-        blocks = np.asarray(_element_hessians(model, prep, x_n, q_n, activation, x, q, static=static))
+        blocks = np.asarray(_element_hessians(model, prep, x_n, q_n, activation, x, q))
         dense = None
         if vertex_terms:
             dense = np.asarray(_vertex_hessian(model, prep, activation, x)).reshape(3 * model.n_vertices, -1)
@@ -328,7 +325,7 @@ def _newton_step(model, prep, state, activation, force, tol, max_iter):
     free = jnp.asarray(model.free_mask)
     x0 = jnp.where(free > 0, state.x + h * state.v, state.x)
     x, q, iters, evals, residual = _newton(model, prep, state.x, state.v, state.rot, activation, force, x0,
-                                           static=False, tol=tol, max_iter=max_iter)
+                                           tol=tol, max_iter=max_iter)
     return State(x=x, v=(x - state.x) / h, rot=q, t=state.t + h), iters, evals, residual
 
 
@@ -409,7 +406,7 @@ def newton_static(model: Model, params: Params, force=None, activation=None, x0=
     prep = prepare(model, params, static=True)
     state = initial_state(model, params, x=x0)
     x, _, iters, _, _ = _newton(model, prep, state.x, state.v, state.rot, _activation(model, activation),
-                                force, state.x, static=True, tol=tol, max_iter=max_iter)
+                                force, state.x, tol=tol, max_iter=max_iter)
     return x, iters
 
 

@@ -229,7 +229,7 @@ class ImplicitEuler(Integrator):
 
     def step(self, model: Model, prep: Prepared, state: State, memory, activation, force):
         start = _step_start(model, prep, state)
-        sol, info = model.options.adjoint.solve(model, prep, start, activation, force, static=False)
+        sol, info = model.options.adjoint.solve(model, prep, start, activation, force)
         v = (sol.x - state.x) / prep.dt
         return State(x=sol.x, v=v, rot=sol.q, t=state.t + prep.dt), memory, info
 
@@ -388,7 +388,7 @@ def _contact_forces(model, params, xs, vs, controls, forces, t0):
     def one(x_n, v_n, t, x, a, f):
         q_n = cold_start(deformation_gradient(model, prep.dminv, x_n))
         state = _step_start(model, prep, State(x=x_n, v=v_n, rot=q_n, t=t))
-        problem, _, threshold, _ = step_problem(model, prep, state, _activation(model, a), f, static=False)
+        problem, _, threshold, _ = step_problem(model, prep, state, _activation(model, a), f)
         q = cold_start(deformation_gradient(model, prep.dminv, jnp.where(free > 0, x, state.x)))
         return model.step.contact.report(problem, model.step.coordinates, x, q, threshold, model.options.max_iter)
 
@@ -604,6 +604,6 @@ def solve_static(model: Model, params: Params, force=None, activation=None, x0=N
 def _solve_static(model, params, force, activation, x0):
     prep = prepare(model, params, static=True)
     state = initial_state(model, params, x=x0)
-    sol, info = model.options.adjoint.solve(model, prep, state, activation, force, static=True)
+    sol, info = model.options.adjoint.solve(model, prep, state, activation, force)
     failed, branch = _first_failure(info.result[None], sol.x[None], jnp.zeros_like(sol.x)[None])
     return sol.x, info, failed, branch

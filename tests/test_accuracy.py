@@ -343,13 +343,12 @@ def test_newton_hessian_matches_the_objective_gradient(muscle_beam):
     activation = jnp.asarray([0.3])
     x = state.x + 1e-3 * state.v
     q = reference._exact_rotations(deformation_gradient(model, prep.dminv, x), state.rot)
-    blocks = np.asarray(reference._element_hessians(model, prep, state.x, state.rot, activation, x, q,
-                                                    static=False))
+    blocks = np.asarray(reference._element_hessians(model, prep, state.x, state.rot, activation, x, q))
     h = model.options.dt
     diagonal = np.repeat(np.asarray(prep.mass[:, 0] / h**2 + prep.mass_alpha[:, 0] / h), 3)
     assembler = reference._Assembler(model)
     hess = assembler.matrix(blocks, diagonal)
-    evaluate, _ = step_objective(model, prep, state.x, state.v, state.rot, activation, None, static=False)
+    evaluate, _ = step_objective(model, prep, state.x, state.v, state.rot, activation, None)
     hvp = jax.jit(jax.vmap(lambda d: jax.jvp(lambda y: evaluate(y, q)[1], (x,), (d,))[1]))
     rng = np.random.default_rng(1)
     dxs = rng.normal(size=(3,) + x.shape) * model.free_mask
@@ -377,16 +376,16 @@ def test_adjoint_hessian_and_parameter_cotangents_match_autodiff_of_the_objectiv
     lam = jnp.asarray(rng.normal(size=x.shape))
 
     def gradient(prep, x_n, v_n, q_n, activation, y):
-        evaluate, _ = step_objective(model, prep, x_n, v_n, q_n, activation, None, static=False)
+        evaluate, _ = step_objective(model, prep, x_n, v_n, q_n, activation, None)
         return evaluate(y, q)[1]
 
     args = (prep, state.x, state.v, state.rot, activation)
     expected_hv = jax.jvp(lambda y: gradient(*args, y), (x,), (dx,))[1]
-    got_hv = step_hessian(model, *args, None, x, q, static=False)(dx)
+    got_hv = step_hessian(model, *args, None, x, q)(dx)
     np.testing.assert_allclose(got_hv, expected_hv, rtol=0, atol=1e-10 * np.abs(expected_hv).max())
 
     expected = jax.vjp(lambda *a: gradient(*a, x), *args)[1](lam)
-    got = step_gradient_vjp(model, *args, None, x, q, lam, static=False)[:5]
+    got = step_gradient_vjp(model, *args, None, x, q, lam)[:5]
     checked = 0
     for e, g in zip(jax.tree.leaves(expected), jax.tree.leaves(got)):
         if e.dtype == jax.dtypes.float0:

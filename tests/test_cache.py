@@ -50,7 +50,7 @@ mesh = meshing.examples.cantilever(length=0.1, width=0.02, height=0.02, size=0.0
 model, params = build(SoftBody(mesh, Material(E=1e5, nu=0.45, density=1000), fixed="fixed"))
 state = initial_state(model, params)
 prep = prepare(model, params)
-evaluate, _ = step_objective(model, prep, state.x, state.v, state.rot, jax.numpy.zeros(0), None, static=False)
+evaluate, _ = step_objective(model, prep, state.x, state.v, state.rot, jax.numpy.zeros(0), None)
 x = state.x + 1e-3
 events.clear()  # count only the program below
 phi, grad, _ = jax.jit(evaluate)(x, state.rot)

@@ -22,10 +22,10 @@ def _dense_critical_dt(model, params):
     from softbody.model import prepare
     from softbody.objective import step_objective
 
-    prep = prepare(model, params, static=True)
+    prep = prepare(model, params)
     x = prep.x_rest
     q = rot.cold_start(deformation_gradient(model, prep.dminv, x))
-    evaluate, _ = step_objective(model, prep, x, x * 0, q, jnp.zeros(0), None, static=True)
+    evaluate, _ = step_objective(model, prep, x, x * 0, q, jnp.zeros(0), None)
     k = np.asarray(jax.jacfwd(lambda y: evaluate(y, q)[1])(x)).reshape(3 * model.n_vertices, -1)
     free = np.repeat(model.free_mask[:, 0] > 0, 3)
     m = np.repeat(np.asarray(prep.mass[:, 0]), 3)[free]

@@ -104,7 +104,7 @@ def _iterations(model, n_plain: int):
         state = initial_state(model, params)
         zero = jnp.zeros(model.n_channels)
         evaluate, scale = step_objective(
-            model, prep, state.x, state.v, state.rot, zero, None, static=False
+            model, prep, state.x, state.v, state.rot, zero, None
         )
         free = jnp.asarray(model.free_mask)
         problem = StepProblem(
@@ -129,7 +129,7 @@ def _iterations(model, n_plain: int):
             return (x, q), r
 
         _, residuals = jax.lax.scan(body, (x0, state.rot), None, length=n_plain)
-        _, info = solve_step(model, prep, state, zero, None, static=False)
+        _, info = solve_step(model, prep, state, zero, None)
         return residuals, scale, info
 
     return jax.jit(run)
@@ -139,7 +139,7 @@ def _timed_step(model):
     """A jitted ``params -> StepInfo`` of the first step from rest, and its timer
     ``(params) -> (info, median seconds over REPEATS runs)``."""
     step = jax.jit(lambda params: solve_step(model, prepare(model, params), initial_state(model, params),
-                                             jnp.zeros(model.n_channels), None, static=False)[1])
+                                             jnp.zeros(model.n_channels), None)[1])
 
     def timed(params):
         info = jax.block_until_ready(step(params))  # compiles on the first call

@@ -61,7 +61,7 @@ def _split(model, params, state0, controls, forces):
     from softbody.objective import step_objective
 
     prep = jax.jit(lambda p: prepare(model, p))(params)
-    evaluate, _ = step_objective(model, prep, state0.x, state0.v, state0.rot, controls[0], forces[0], static=False)
+    evaluate, _ = step_objective(model, prep, state0.x, state0.v, state0.rot, controls[0], forces[0])
     solver = model.linear_solver
     x = state0.x + 1e-3
 

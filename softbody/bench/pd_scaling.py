@@ -60,7 +60,7 @@ def run(out: Path, quick: bool) -> dict:
             t0 = time.perf_counter()
             prep = jax.block_until_ready(jax.jit(lambda p: prepare(model, p))(params))
             setup = time.perf_counter() - t0
-            evaluate, _ = step_objective(model, prep, s0.x, s0.v, s0.rot, None, None, static=False)
+            evaluate, _ = step_objective(model, prep, s0.x, s0.v, s0.rot, None, None)
             x = s0.x + 1e-3
             local = _time(lambda x: x + 1e-9 * evaluate(x, s0.rot)[1], x)
             solve = _time(lambda x: x + 1e-9 * solver.solve(model.pattern, prep.factor, x), x)
