@@ -364,6 +364,12 @@ class PairRows:
         names that are not the scene's."""
         raise NotImplementedError
 
+    def vertices(self):
+        """The scene's vertices this generator's rows may touch, ``(k,)`` static ints (after
+        :meth:`bind`). The bodies holding them share one set of Anderson coefficients in the
+        contact iteration (:attr:`softbody._types.Model.contact_blocks`)."""
+        raise NotImplementedError
+
     def select(self, x_start, x_end, params):
         """The rows of one step, chosen from the positions ``x_start`` and ``x_end``
         ``(n, 3)`` at the step's start and its predicted end (not differentiated).

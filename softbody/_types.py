@@ -264,6 +264,33 @@ class Model:
         """Whether the scene has contact rows: obstacles or other row generators."""
         return bool(self.obstacles or self.rows)
 
+    @functools.cached_property
+    def contact_blocks(self) -> np.ndarray | None:
+        """``(n,)`` int: each vertex's block of Anderson coefficients in the contact iteration
+        (:func:`softbody.contact.anderson.mix`): one per body, so that bodies that do not touch
+        each other converge as each would alone, and one for the bodies that rows between
+        bodies (:class:`~softbody._interfaces.PairRows`) couple. ``None`` where that is one
+        block for the whole scene."""
+        if len(self.bodies) < 2:
+            return None
+        body = np.repeat(np.arange(len(self.bodies)), [stop - start for start, stop in
+                                                        (part.vertices for part in self.bodies)])
+        root = list(range(len(self.bodies)))
+
+        def find(i):
+            while root[i] != i:
+                i = root[i]
+            return i
+
+        for generator in self.rows:
+            if generator.kind == "pair":
+                touched = sorted({find(int(b)) for b in np.unique(body[generator.vertices()])})
+                for b in touched[1:]:
+                    root[b] = touched[0]
+        roots = np.array([find(i) for i in range(len(self.bodies))])
+        label = np.unique(roots, return_inverse=True)[1]
+        return None if label.max() == 0 else label[body]
+
     @property
     def n_tets(self) -> int:
         return self.mesh.n_tets

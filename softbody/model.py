@@ -160,12 +160,10 @@ def _compose(options: Options, rig: Rig | None, contact_rows: bool, parts: tuple
         raise SceneError(f"Options.adjoint must be Implicit(), ImplicitForward() or Unrolled(), got "
                          f"{options.adjoint!r}")
     contact = (options.contact or Contact()) if contact_rows else None
-    if contact is not None and len(parts) > 1 and not contact.blocks:
-        contact = dataclasses.replace(contact, blocks=tuple(part.vertices for part in parts))
     n = parts[-1].vertices[1]
     if contact is not None and contact.blocks and contact.blocks[-1][1] != n:
         raise SceneError(f"Contact.blocks must end at the scene's {n} vertices, got {contact.blocks!r}; leave it at "
-                         "() for build to set one block per body")
+                         "() for one block per body (bodies that rows between bodies couple share one)")
     return Step(coordinates, solver, contact)
 
 

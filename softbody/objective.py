@@ -253,7 +253,8 @@ def step_problem(model: Model, prep: Prepared, state: State, activation, force):
         precondition=lambda g: solver.solve(pattern, prep.factor, g),
         diagonal=prep.data[jnp.asarray(model.diag_to_data)][:, None],
         x_n=state.x, v_n=state.v, mass=prep.mass, free=free, dt=prep.dt,
-        time=state.t, rows=contact_rows(model, prep), prepared=prep.step)
+        time=state.t, rows=contact_rows(model, prep), prepared=prep.step,
+        blocks=model.contact_blocks)
     x0 = prep.inertia.start(state.x, state.v, free)
     if prep.inertia.static:
         # Actuators may load a body with no external force: measure the residual against

@@ -64,6 +64,9 @@ class StepProblem(NamedTuple):
             (:class:`~softbody._interfaces.Rows`; its obstacles are one) and their
             parameters; ``()`` without contact.
         prepared: the coordinates' per-rollout data (:meth:`Step.prepare`).
+        blocks: ``(n,)`` static ints, each vertex's block of Anderson coefficients in the
+            contact iteration (:attr:`softbody._types.Model.contact_blocks`), or ``None``
+            for one block.
     """
 
     evaluate: Callable
@@ -77,6 +80,7 @@ class StepProblem(NamedTuple):
     time: Array
     rows: tuple = ()
     prepared: object = None
+    blocks: object = None
 
 
 class Solution(NamedTuple):

@@ -130,7 +130,7 @@ def test_bodies_that_do_not_touch_move_as_they_do_alone():
 
 def test_the_splitting_converges_for_each_body_as_alone():
     """With the splitting alone (no active set), each body's Anderson coefficients are its
-    own (``Contact.blocks``, one per body, set by ``build``), so the block's landing does
+    own (``Model.contact_blocks``, one per body), so the block's landing does
     not stall the arm's convergence: every step converges within 3000 iterations at
     tol 1e-8 (measured at most 772). With one set of coefficients for both bodies a landing
     step reached the 3000-iteration cap. (The counts move by factors of 2-4 with rounding:
@@ -138,7 +138,7 @@ def test_the_splitting_converges_for_each_body_as_alone():
     n_steps = 8
     options = Options(dt=0.01, tol=1e-8, max_iter=3000)
     both, params = build([_arm("arm"), _block("block")], obstacles=GROUND, options=options)
-    assert both.options.contact.blocks == ((0, ARM.n_vertices), (ARM.n_vertices, ARM.n_vertices + BLOCK.n_vertices))
+    np.testing.assert_array_equal(both.contact_blocks, np.repeat([0, 1], [ARM.n_vertices, BLOCK.n_vertices]))
     traj = rollout(both, params, initial_state(both, params), n_steps=n_steps, controls=jnp.full((n_steps, 1), 0.5))
     assert bool(np.all(traj.info.converged)), np.asarray(traj.info.iterations)
     with pytest.raises(SceneError, match="must end at the scene's"):

@@ -55,6 +55,21 @@ def scene():
     return _scene()
 
 
+def test_bodies_that_touch_share_anderson_coefficients_and_others_keep_their_own():
+    """The contact iteration's Anderson blocks come from the scene: one per body, merged
+    where rows between bodies couple them (a third body that nothing touches keeps its own;
+    two touching bodies alone are one block, ``None``)."""
+    material = Material(E=1e6, nu=0.3, density=1000.0)
+    lid = grid_box((0.02, 0.02, 0.01), (2, 2, 1), origin=(0.04, -0.01, 0.012))
+    model, _ = build([SoftBody(SLAB, material, fixed="zmin", name="slab"), SoftBody(BLOCK, material, name="block"),
+                      SoftBody(lid, material, name="lid")],
+                     rows=[Touch("block", "slab", thickness=THICKNESS)], obstacles=[Plane(point=(0, 0, -0.1))],
+                     options=Options(dt=DT))
+    n_block = BLOCK.n_vertices
+    np.testing.assert_array_equal(model.contact_blocks, np.repeat([0, 0, 1], [N_SLAB, n_block, lid.n_vertices]))
+    assert _scene()[0].contact_blocks is None
+
+
 def test_block_rests_on_slab(scene):
     model, params = scene
     traj = rollout(model, params, initial_state(model), n_steps=30)  # throws unless every step converged

@@ -216,6 +216,10 @@ class Touch(PairRows):
     def size(self) -> int:
         return 0 if self._vertices is None else sum(len(v) for v in self._vertices)
 
+    def vertices(self):
+        """The two surfaces' vertices, ``(k,)`` ints (see :meth:`PairRows.vertices`)."""
+        return np.unique(np.concatenate(self._bound()[0]))
+
     def _bound(self):
         if self._vertices is None:
             raise SceneError("Touch is used before build bound it to a scene: pass it in build(rows=[...])")

@@ -162,9 +162,10 @@ class Contact:
         adjoint_tol, adjoint_max_iter: relative tolerance and iteration cap of the linear
             solve of the implicit derivative (Anderson-accelerated, like the forward solve).
         blocks: ``((start, stop), ...)`` vertex ranges whose Anderson coefficients are
-            separate (:func:`softbody.contact.anderson.mix`); :func:`~softbody.model.build` sets one
-            per body in a scene of several, so that bodies that do not touch each other
-            converge as each would alone. ``()``: one set for all.
+            separate (:func:`softbody.contact.anderson.mix`), or ``()`` (default) for the
+            scene's own: one per body, bodies that rows between bodies couple sharing one
+            (:attr:`softbody._types.Model.contact_blocks`), so that bodies that do not touch
+            each other converge as each would alone.
 
     The PD matrix is prefactored with the true volume weight (``volume_weight = 1``):
     its diagonal defines ``P``.
@@ -211,13 +212,19 @@ class Contact:
             raise ValueError(f"Contact.blocks must be consecutive vertex ranges (start, stop) from 0, got {self.blocks!r}")
         object.__setattr__(self, "blocks", blocks)
 
-    def _labels(self, owners: np.ndarray) -> np.ndarray | None:
-        """The Anderson block of each flattened entry of the iterate ``(n + e, 3)`` (an extra
-        row in its vertex's block), or ``None`` for one block."""
-        if not self.blocks:
+    def _labels(self, blocks, owners: np.ndarray, pairs: _Pairs) -> np.ndarray | None:
+        """The Anderson block of each flattened entry of the iterate ``(n + e + m, 3)``, or
+        ``None`` for one block: each vertex's from :attr:`blocks` where set, else the
+        scene's ``blocks`` (``(n,)``, :attr:`softbody._types.Model.contact_blocks`); an extra
+        row in its vertex's block, a pair row in its generator's (whose vertices share one)."""
+        if self.blocks:
+            vertex = np.repeat(np.arange(len(self.blocks)), [b - a for a, b in self.blocks])
+        elif blocks is not None:
+            vertex = np.asarray(blocks)
+        else:
             return None
-        vertex = np.repeat(np.arange(len(self.blocks)), [b - a for a, b in self.blocks])
-        return np.repeat(np.concatenate([vertex, vertex[owners]]), 3)
+        rows = [np.full(generator.size, vertex[generator.vertices()[0]]) for generator, _, _ in pairs.rows]
+        return np.repeat(np.concatenate([vertex, vertex[owners], *rows]), 3)
 
     def run(self, problem: StepProblem, coordinates: Coordinates, solver: NonlinearSolver, x0, q0, threshold,
             max_iter: int) -> Solution:
@@ -387,8 +394,7 @@ class Contact:
         def lift(x):
             return jnp.concatenate([x, jnp.zeros((extra + m, 3), x.dtype)]) if extra + m else x
 
-        # bodies that touch each other share one set of Anderson coefficients
-        labels = None if m else self._labels(parts.owners)
+        labels = self._labels(problem.blocks, parts.owners, pairs)
         return ContactMap(apply, weight, labels, lift, parts, pairs)
 
     def report(self, problem: StepProblem, coordinates: Coordinates, x, q, threshold, max_iter: int):
