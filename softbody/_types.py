@@ -34,6 +34,7 @@ import numpy as np
 
 from softbody import linsolve
 from softbody.elastic import corner_incidence
+from softbody.material import RULES, check_values
 from softbody.meshing import TetMesh
 
 Array = jax.Array
@@ -164,14 +165,47 @@ class Params(eqx.Module):
     def replace(self, **changes) -> "Params":
         """A copy with some fields replaced, e.g. ``params.replace(E=params.E * 2)``.
 
+        Concrete material values (``E``, ``nu``, ``density``, ``alpha``, ``beta``) are
+        checked against the rules of :class:`~softbody.material.Material` before anything
+        compiles; a single number for a scene with one material is taken as that
+        material's value. Traced values (inside ``jax.jit``, ``jax.grad``, ``jax.vmap``)
+        are used as given.
+
         Raises:
-            SceneError: an unknown field, or shapes that do not fit together.
+            SceneError: an unknown field, a material value of the wrong shape (one value
+                per material, in the order of ``Model.material_names``), or shapes that do
+                not fit together.
+            TypeError: a material value that is not numeric.
+            ValueError: a material value out of its range (e.g. ``E <= 0``, ``nu >= 0.5``).
         """
         fields = {f.name for f in dataclasses.fields(self)}
         unknown = sorted(set(changes) - fields)
         if unknown:
             raise SceneError(f"Params has no field(s) {unknown}; its fields are {sorted(fields)}")
+        for name in RULES.keys() & changes.keys():
+            changes[name] = self._material_value(name, changes[name])
         return dataclasses.replace(self, **changes)
+
+    def _material_value(self, name: str, value):
+        """``value`` for the material field ``name``, checked and shaped when it is concrete."""
+        if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(value)):
+            return value  # traced: checking would need its value
+        current = getattr(self, name)
+        shape = jnp.shape(current)
+        try:
+            given = np.shape(value)
+        except ValueError:  # ragged nesting: check_values names it
+            given = shape
+        if given != shape and not (given == () and shape == (1,)):
+            why = ("a single number is taken for the one material; with several, give every material's value "
+                   f"(e.g. jnp.full({shape[0]}, value)) or change one with params.{name}.at[i].set(value)"
+                   if given == () and len(shape) == 1 else "")
+            raise SceneError(f"Params.{name} has shape {given} but must have shape {shape}: one value per "
+                             "material, in the order of Model.material_names" + (f"; {why}" if why else ""))
+        checked = check_values(f"Params.{name}", name, value)
+        if isinstance(value, jax.Array) and given == shape:
+            return value
+        return jnp.broadcast_to(jnp.asarray(checked, jnp.result_type(current)), shape)
 
 
 class State(eqx.Module):

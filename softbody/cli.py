@@ -42,6 +42,23 @@ class Parser(argparse.ArgumentParser):
         self._negative_number_matcher = self.NEGATIVE_NUMBER
 
 
+def port_number(text: str) -> int:
+    """The ``type`` of a ``--port`` option: a TCP port number, an integer from 0 to 65535.
+
+    Raises:
+        argparse.ArgumentTypeError: ``text`` is not such an integer (argparse then prints
+            the message and exits with status 2).
+    """
+    try:
+        port = int(text)
+    except ValueError:
+        port = None
+    if port is None or not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a TCP port: give an integer from 0 to 65535 "
+                                         "(0: any free port)")
+    return port
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = Parser(
         prog="softbody",

@@ -49,6 +49,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from softbody.cli import port_number
+
 #: Arm dimensions (length along +x, width along y, height along z), m.
 ARM_LENGTH, ARM_WIDTH, ARM_HEIGHT = 0.2, 0.04, 0.04
 #: Muscle band name -> the (y, z) side of the cross-section it fills.
@@ -412,7 +414,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("softbody-demo"),
                         help="output folder (default softbody-demo/); must be empty or new unless --force")
     parser.add_argument("--no-view", action="store_true", help="do not open the browser viewer at the end")
-    parser.add_argument("--port", type=int, default=8080,
+    parser.add_argument("--port", type=port_number, default=8080,
                         help="viewer port (default 8080; the next free one if taken)")
     parser.add_argument("--force", action="store_true",
                         help="overwrite the demo's files in a non-empty folder")

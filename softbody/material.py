@@ -51,8 +51,55 @@ Mass is lumped: each tet gives a quarter of ``density * V`` to each of its verti
 
 from __future__ import annotations
 
-import math
+import numbers
+from collections.abc import Callable
 from dataclasses import dataclass
+
+import numpy as np
+
+#: The allowed values of each material field: name -> (test, what the value must be). The
+#: tests work elementwise on arrays, so :class:`Material` (one number each) and
+#: ``Params.replace`` (one value per material) check against the same rules.
+RULES: dict[str, tuple[Callable, str]] = {
+    "E": (lambda v: v > 0, "Young's modulus must be a positive number of pascals"),
+    "nu": (lambda v: (v > -1) & (v < 0.5),
+           "Poisson's ratio must lie in (-1, 0.5); 0.5 (incompressible) is not supported, use 0.49"),
+    "density": (lambda v: v > 0, "density must be positive (kg/m^3)"),
+    "alpha": (lambda v: v >= 0, "mass damping alpha must be >= 0 (1/s)"),
+    "beta": (lambda v: v >= 0, "stiffness damping beta must be >= 0 (s)"),
+}
+
+
+def check_values(where: str, name: str, value) -> np.ndarray:
+    """Check a concrete material value (a number or an array of them) against :data:`RULES`.
+
+    Arguments:
+        where: how the message names the value, e.g. ``"Material.E"``.
+        name: the field, a key of :data:`RULES`.
+        value: a number or an array-like of numbers (not a JAX tracer).
+
+    Returns:
+        ``value`` as a float64 numpy array (0-d for a number).
+
+    Raises:
+        TypeError: ``value`` is not numeric (text, a bool, ``None``, ...).
+        ValueError: some entry is NaN, inf or outside the allowed range.
+    """
+    ok, why = RULES[name]
+    real = isinstance(value, numbers.Real) and not isinstance(value, bool)
+    try:  # float(): a Fraction or another real number type that numpy would keep as an object
+        array = np.asarray(float(value) if real else value)
+    except (TypeError, ValueError):  # ragged nesting and the like
+        array = np.asarray(None)
+    if array.dtype.kind not in "iuf":
+        hint = " (write the number without quotes)" if isinstance(value, (str, bytes)) else ""
+        raise TypeError(f"{where} = {value!r} is not a number{hint}: {why}")
+    array = array.astype(np.float64)
+    bad = ~(np.isfinite(array) & ok(array))
+    if np.any(bad):
+        shown = value if array.ndim == 0 else array.tolist()
+        raise ValueError(f"{where} = {shown!r}: {why}")
+    return array
 
 
 @dataclass(frozen=True)
@@ -67,6 +114,7 @@ class Material:
         beta: stiffness-proportional damping, s (>= 0).
 
     Raises:
+        TypeError: a value is not a number (e.g. the text ``"1e5"``), naming the field.
         ValueError: naming the bad value and the allowed range.
     """
 
@@ -77,21 +125,10 @@ class Material:
     beta: float = 0.0
 
     def __post_init__(self):
-        checks = [
-            ("E", self.E, lambda v: v > 0, "Young's modulus must be a positive number of pascals"),
-            ("nu", self.nu, lambda v: -1 < v < 0.5,
-             "Poisson's ratio must lie in (-1, 0.5); 0.5 (incompressible) is not supported, use 0.49"),
-            ("density", self.density, lambda v: v > 0, "density must be positive (kg/m^3)"),
-            ("alpha", self.alpha, lambda v: v >= 0, "mass damping alpha must be >= 0 (1/s)"),
-            ("beta", self.beta, lambda v: v >= 0, "stiffness damping beta must be >= 0 (s)"),
-        ]
-        for name, value, ok, why in checks:
-            try:
-                v = float(value)
-            except (TypeError, ValueError):
-                raise ValueError(f"Material.{name} = {value!r} is not a number: {why}") from None
-            if not math.isfinite(v) or not ok(v):
-                raise ValueError(f"Material.{name} = {value!r}: {why}")
+        for name in RULES:
+            value = getattr(self, name)
+            if check_values(f"Material.{name}", name, value).ndim != 0:
+                raise TypeError(f"Material.{name} = {value!r} is not a single number: {RULES[name][1]}")
 
     @property
     def mu(self) -> float:

@@ -81,6 +81,38 @@ def fixed_region(mesh, name: str | None) -> str | None:
     return name
 
 
+def failure_message(args: argparse.Namespace, step: int, code, max_iter: int, residual: float) -> str:
+    """What ``softbody run`` says when a step fails: what failed and which options to change.
+
+    Arguments:
+        args: the command's arguments.
+        step: the first failing step.
+        code: its :class:`~softbody._types.RESULTS` code.
+        max_iter: the solver's iteration cap.
+        residual: the relative force residual the step reached.
+
+    Returns:
+        The message, which names the step, what failed and the command's options that fix it.
+    """
+    from softbody._types import RESULTS
+    from softbody.meshing import EXAMPLES
+
+    finer = ("a smaller --size" if args.mesh in EXAMPLES
+             else "remesh it finer with `softbody mesh ... --size`")
+    load = (f"lower --gravity, raise --E (now {args.E:g} Pa), refine the mesh ({finer}) "
+            f"or reduce --dt (now {args.dt:g} s)")
+    if code == RESULTS.max_iterations:
+        what = (f"the solver stopped at its cap of {max_iter} iterations with a relative force residual of "
+                f"{residual:.2g} > --tol {args.tol:g}. Loosen --tol or reduce --dt (now {args.dt:g} s)")
+    elif code == RESULTS.nonfinite:
+        what = f"the positions became non-finite (NaN/inf): the load is too large for the step. To fix it, {load}"
+    elif code == RESULTS.inverted:
+        what = f"tets inverted (det F <= 0): the body deforms more than the mesh resolves. To fix it, {load}"
+    else:
+        what = code.message
+    return f"step {step}: {what}. Nothing was written."
+
+
 def simulate(args: argparse.Namespace) -> tuple[object, dict]:
     """Mesh or load, build and simulate what ``args`` describe.
 
@@ -91,13 +123,14 @@ def simulate(args: argparse.Namespace) -> tuple[object, dict]:
     Raises:
         RunError, MeshError, ValueError: bad input (unknown mesh, region, material or option).
         SimulationError: a step stopped at the iteration cap, became non-finite or inverted
-            tets (nothing is written then).
+            tets (nothing is written then); the message names the command's options to change.
     """
+    from softbody._types import RESULTS
     from softbody.io import Result
     from softbody.material import Material
     from softbody.model import Options, build, initial_state
     from softbody.scene import SoftBody
-    from softbody.simulate import rollout
+    from softbody.simulate import SimulationError, rollout
 
     if args.steps < 1:
         raise RunError(f"--steps must be at least 1, got {args.steps}")
@@ -110,7 +143,12 @@ def simulate(args: argparse.Namespace) -> tuple[object, dict]:
     model, params = build(SoftBody(mesh, material, fixed=fixed), options=options)
 
     tick = time.perf_counter()
-    traj = rollout(model, params, initial_state(model, params), n_steps=args.steps)
+    traj = rollout(model, params, initial_state(model, params), n_steps=args.steps, throw=False)
+    codes = np.asarray(traj.info.result)
+    if np.any(codes != RESULTS.success):
+        step = int(np.argmax(codes != RESULTS.success))
+        raise SimulationError(failure_message(args, step, RESULTS(int(codes[step])), model.options.max_iter,
+                                              float(traj.info.residual[step])))
     x = np.asarray(traj.x)
     simulate_s = time.perf_counter() - tick
     iterations = np.asarray(traj.info.iterations)

@@ -396,7 +396,19 @@ def _contact_forces(model, params, xs, vs, controls, forces, t0):
         x_start, v_start, times, xs[1:], controls, forces)
 
 
-def _check_controls(model: Model, controls, forces, n_steps):
+def _check_controls(model: Model, controls, forces, n_steps, params=None, state0=None):
+    if n_steps is not None and (isinstance(n_steps, bool) or not isinstance(n_steps, (int, np.integer))):
+        raise SceneError(f"n_steps must be a whole number of steps, got {n_steps!r}; round a computed count, "
+                         "e.g. n_steps=round(duration / dt)")
+    n, t, m = model.n_vertices, model.n_tets, len(model.material_names)
+    for name, shape in {"state0.x": (n, 3), "state0.v": (n, 3), "state0.rot": (4, t), "params.morph": (n, 3),
+                        "params.E": (m,)}.items():
+        owner, field = name.split(".")
+        value = getattr({"state0": state0, "params": params}[owner], field, None)
+        if value is not None and jnp.shape(value) != shape:
+            raise SceneError(f"{name} has shape {jnp.shape(value)} but this model ({n} vertices, {t} tets, "
+                             f"{m} material(s)) needs {shape}: it belongs to another model; use the params build "
+                             "returned with this model and initial_state(model, params)")
     if controls is not None:
         controls = jnp.asarray(controls)
         if controls.ndim != 2 or controls.shape[1] != model.n_channels:
@@ -514,8 +526,9 @@ def rollout(model: Model, params: Params, state0: State, controls=None, forces=N
         step carries that code.
 
     Raises:
-        SceneError: bad control or force shapes, or NaN/inf in them (before compiling),
-            whatever ``throw``.
+        SceneError: bad control or force shapes, or NaN/inf in them, ``n_steps`` not a whole
+            number >= 1, or a state or params whose shapes do not fit the model (before
+            compiling), whatever ``throw``.
         SimulationError: with ``throw=True``, a step stopped at the iteration cap without
             meeting its tolerance, its state or residual became non-finite, or it ended
             with more inverted tets (``det F <= 0``) than ``state0``; the message names the
@@ -525,7 +538,7 @@ def rollout(model: Model, params: Params, state0: State, controls=None, forces=N
             which keeps the compiled program out of the persistent compilation cache: pass
             ``throw=False`` there and call :func:`check_trajectory` on the result instead.
     """
-    controls, forces, n_steps = _check_controls(model, controls, forces, n_steps)
+    controls, forces, n_steps = _check_controls(model, controls, forces, n_steps, params, state0)
     with _forward_mode_hint():
         traj, failed, branch = _rollout(model, params, state0, controls, forces, n_steps)
     if not throw:

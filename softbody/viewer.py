@@ -24,8 +24,10 @@ Command line::
 from __future__ import annotations
 
 import argparse
+import errno
 import html
 import os
+import socket
 import sys
 import threading
 import time
@@ -37,6 +39,7 @@ import numpy as np
 import viser
 import viser.transforms as vtf
 
+from softbody.cli import port_number
 from softbody.io import (
     Result,
     ResultError,
@@ -306,10 +309,75 @@ def _add_obstacles(server: viser.ViserServer, obstacles: Sequence[dict], lo: np.
                                          color=_OBSTACLE, side="double")
 
 
+#: How many ports, from the one asked for, a viewer tries when it is taken.
+PORT_TRIES = 1000
+
+
+def free_port(host: str, port: int) -> int:
+    """The port a viewer asked for ``port`` on ``host`` gets: ``port`` when it is free, else
+    the next free one (``0`` stays ``0``: the system picks a free port when serving).
+
+    The server binds in a thread of its own, where a port out of range or an address that
+    is not this machine's fails unseen and leaves the caller waiting; checking here
+    (binding and releasing a socket per address, as the server will) turns those into
+    errors before it starts.
+
+    Arguments:
+        host: interface to bind (``"127.0.0.1"``, ``"0.0.0.0"``, a host name, ...).
+        port: TCP port asked for, 0 to 65535.
+
+    Returns:
+        The port to serve on.
+
+    Raises:
+        ValueError: ``port`` is not an integer from 0 to 65535, ``host`` is not an address
+            of this machine, or ``port`` and the next ones (up to :data:`PORT_TRIES`) are
+            all taken; the message says what to pass instead.
+    """
+    if isinstance(port, bool) or not isinstance(port, (int, np.integer)) or not 0 <= port <= 65535:
+        raise ValueError(f"port {port!r} is not a TCP port: give an integer from 0 to 65535 (0: any free port)")
+    port = int(port)
+    try:
+        infos = set(socket.getaddrinfo(host or None, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE))
+    except (socket.gaierror, UnicodeError) as err:
+        raise ValueError(f"cannot serve on host {host!r}: {getattr(err, 'strerror', None) or err}; use 127.0.0.1 "
+                         "(this machine only) or 0.0.0.0 (every network interface)") from None
+
+    def bind(candidate: int) -> None:
+        for family, kind, proto, _, address in infos:
+            try:
+                sock = socket.socket(family, kind, proto)
+            except OSError:
+                continue  # a family this machine lacks; the server skips it too
+            with sock:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                if family == socket.AF_INET6:
+                    sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)
+                sock.bind((address[0], candidate, *address[2:]))
+                sock.listen(1)
+
+    last = min(port + PORT_TRIES, 65536) if port else 1
+    for candidate in range(port, last):
+        try:
+            bind(candidate)
+            return candidate
+        except OSError as err:
+            if err.errno == errno.EACCES:
+                raise ValueError(f"cannot serve on port {candidate}: {err.strerror}; ports below 1024 need "
+                                 "administrator rights: use a port from 1024 up (0: any free port)") from None
+            if err.errno != errno.EADDRINUSE:
+                raise ValueError(f"cannot serve on {host}:{candidate}: {err.strerror or err}; use host 127.0.0.1 "
+                                 "(this machine only) or 0.0.0.0 (every network interface)") from None
+    raise ValueError(f"ports {port} to {last - 1} on {host} are all in use; pass port 0 (any free port) or another port")
+
+
 class _ServerViewer:
     """What playback and live viewers share: the server, its URL, the surface and colours."""
 
     def __init__(self, host: str, port: int, faces: np.ndarray):
+        asked, port = port, free_port(host, port)
+        if port != asked:
+            print(f"softbody viewer: port {asked} is in use; serving on port {port}", file=sys.stderr, flush=True)
         self.server = viser.ViserServer(host=host, port=port, label="softbody", verbose=False)
         self.server.gui.configure_theme(control_width="medium", show_share_button=False)
         # Docked, the panel takes its own column and the canvas shrinks to the space left of
@@ -579,6 +647,7 @@ class LiveViewer(_ServerViewer):
     def __init__(self, mesh: Any, step_fn: Callable, state0: Any, channels: Sequence[str],
                  ranges: Sequence[tuple[float, float]] | None, rate: float, color_by: str | None,
                  obstacles: Sequence[dict], host: str, port: int):
+        free_port(host, port)  # a bad port or host fails now, not after step_fn compiled
         points, tets, surface = (np.asarray(mesh.points, float), np.asarray(mesh.tets),
                                  np.asarray(mesh.surface))
         channels = [str(c) for c in channels]
@@ -734,8 +803,8 @@ def view(result: Result | str | os.PathLike, host: str = "127.0.0.1", port: int 
     Arguments:
         result: a :class:`~softbody.io.Result` or the path of a result ``.npz``.
         host: interface to bind; ``"127.0.0.1"`` serves this machine only.
-        port: TCP port; if taken, the next free one is used (see the returned ``url``);
-            0 picks any free port.
+        port: TCP port, 0 to 65535; if taken, the next free one is used (see the returned
+            ``url``); 0 picks any free port.
         block: serve until Ctrl-C and stop the server before returning.
         color_by: initial colouring: ``"strain"``, ``"displacement"``, ``"activation"``, a
             field name, ``"regions"`` or ``None``.
@@ -746,6 +815,8 @@ def view(result: Result | str | os.PathLike, host: str = "127.0.0.1", port: int 
     Raises:
         FileNotFoundError, ResultError: the result cannot be read, or ``color_by`` is not
             available (the message lists what is).
+        ValueError: ``port`` is not an integer from 0 to 65535, ``host`` is not an address
+            of this machine, or no port from ``port`` on is free (see :func:`free_port`).
     """
     viewer = PlaybackViewer(as_result(result), host, port, color_by)
     if block:
@@ -778,7 +849,7 @@ def view_live(mesh: Any, step_fn: Callable[[Any, np.ndarray], tuple[Any, Any]], 
         color_by: ``"displacement"`` (from the rest shape), ``"strain"`` or ``None``.
         obstacles: obstacle dicts to draw (see :mod:`softbody.io`).
         host: interface to bind; ``"127.0.0.1"`` serves this machine only.
-        port: TCP port (0: any free port).
+        port: TCP port, 0 to 65535; if taken, the next free one is used (0: any free port).
         block: serve until Ctrl-C and stop before returning.
 
     Returns:
@@ -786,8 +857,8 @@ def view_live(mesh: Any, step_fn: Callable[[Any, np.ndarray], tuple[Any, Any]], 
         ``reset()``, ``stop()``).
 
     Raises:
-        ValueError: bad channels, ranges, rate or colouring, or ``step_fn`` returned
-            positions of the wrong shape.
+        ValueError: bad channels, ranges, rate or colouring, ``step_fn`` returned
+            positions of the wrong shape, or a bad ``port`` or ``host`` (see :func:`free_port`).
         FloatingPointError: the first step produced non-finite positions.
     """
     viewer = LiveViewer(mesh, step_fn, state0, channels, ranges, rate, color_by, obstacles, host, port)
@@ -801,7 +872,8 @@ def view_live(mesh: Any, step_fn: Callable[[Any, np.ndarray], tuple[Any, Any]], 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``softbody view``."""
     parser.add_argument("result", help="result file (.npz) written by `softbody run` or Result.save")
-    parser.add_argument("--port", type=int, default=8080, help="TCP port (default 8080; the next free one if taken)")
+    parser.add_argument("--port", type=port_number, default=8080,
+                        help="TCP port, 0 to 65535 (default 8080; the next free one if taken; 0: any free port)")
     parser.add_argument("--host", default="127.0.0.1",
                         help="interface to bind (default 127.0.0.1: this machine only; 0.0.0.0: the network)")
     parser.add_argument("--color-by", default="strain",
