@@ -22,6 +22,7 @@ One job per module:
 * :mod:`~softbody.contact.fixed_point`: the implicit derivative of a step's fixed point.
 * :mod:`~softbody.contact.impact_zone`: the collision-response QP with its KKT and QR
   backward, the reference the pair rows' gradient tests compare with.
+* :mod:`~softbody.contact.ccd`: continuous collision detection (did a step tunnel?).
 
 The interfaces a generator implements (:class:`~softbody._interfaces.Rows`,
 :class:`~softbody._interfaces.PairRows`) live in the bottom layer, so that generators need
