@@ -386,6 +386,14 @@ class PairRows:
         ``(n, 3)``."""
         raise NotImplementedError
 
+    def crossed(self, x_start, x_end, params):
+        """Whether the surfaces this generator keeps apart passed through each other during
+        a step that moved every vertex on a straight line from ``x_start`` to ``x_end``
+        ``(n, 3)`` (not differentiated): ``(count, overflow)``, the int32 number of surface
+        pairs that met and a bool, true where the search for them overflowed. The default
+        checks nothing (``(0, False)``)."""
+        return jnp.asarray(0, jnp.int32), jnp.asarray(False)
+
 
 class Coordinates:
     """The unknowns of an implicit step: how positions are parametrised.

@@ -438,9 +438,13 @@ class RESULTS(enum.IntEnum):
     * ``overflow`` (4): a contact search between bodies found more candidate pairs than
       its fixed capacity holds (``StepInfo.overflow``): contacts may be missing from the
       step. Rebuild with a larger capacity (``Touch(..., capacity=...)``).
+    * ``tunnelled`` (5): surfaces kept apart by rows between bodies passed through each
+      other during the step (``StepInfo.tunnelled`` counts the surface pairs that met, by
+      continuous collision detection of the step's straight-line motion): the rows, chosen
+      at the step's start and predicted end, missed the crossing. Reduce ``Options.dt``.
 
     A step with several of these reports the first in the order inverted, nonfinite,
-    overflow, max_iterations (inverted tets usually cause the rest). Codes are plain integers:
+    tunnelled, overflow, max_iterations (inverted tets usually cause the rest). Codes are plain integers:
     ``traj.info.result == RESULTS.max_iterations`` works on the arrays.
     """
 
@@ -449,6 +453,7 @@ class RESULTS(enum.IntEnum):
     nonfinite = 2
     inverted = 3
     overflow = 4
+    tunnelled = 5
 
     @property
     def message(self) -> str:
@@ -456,12 +461,15 @@ class RESULTS(enum.IntEnum):
         return _RESULT_MESSAGES[self]
 
     @staticmethod
-    def of(*, finite, converged, inverted, inverted0, overflow=False) -> Array:
+    def of(*, finite, converged, inverted, inverted0, overflow=False, tunnelled=0) -> Array:
         """The int32 code of steps (elementwise): ``inverted`` where ``inverted > inverted0``,
-        else ``nonfinite`` where not ``finite``, else ``overflow`` where a contact search
-        overflowed, else ``max_iterations`` where not ``converged``, else ``success``."""
+        else ``nonfinite`` where not ``finite``, else ``tunnelled`` where surfaces passed
+        through each other (``tunnelled > 0``: certain, where an overflow only may have lost
+        contacts), else ``overflow`` where a contact search overflowed, else
+        ``max_iterations`` where not ``converged``, else ``success``."""
         code = jnp.where(converged, int(RESULTS.success), int(RESULTS.max_iterations))
         code = jnp.where(overflow, int(RESULTS.overflow), code)
+        code = jnp.where(tunnelled > 0, int(RESULTS.tunnelled), code)
         code = jnp.where(finite, code, int(RESULTS.nonfinite))
         return jnp.where(inverted > inverted0, int(RESULTS.inverted), code).astype(jnp.int32)
 
@@ -472,6 +480,7 @@ _RESULT_MESSAGES = {
     RESULTS.nonfinite: "the state or the force residual became non-finite (NaN/inf)",
     RESULTS.inverted: "the step ended with more inverted tets (det F <= 0) than the initial state had",
     RESULTS.overflow: "a contact search between bodies overflowed its capacity: contacts may be missing",
+    RESULTS.tunnelled: "surfaces kept apart by rows between bodies passed through each other during the step",
 }
 
 
@@ -487,3 +496,4 @@ class StepInfo(eqx.Module):
     fallback: Array  # bool: a contact step's fast iteration (ActiveSet) fell short and the proven
     #   splitting iteration finished the step (softbody.contact.Contact)
     overflow: Array  # bool: a contact search between bodies overflowed its capacity (RESULTS.overflow)
+    tunnelled: Array  # int: surface pairs that passed through each other during the step (RESULTS.tunnelled)

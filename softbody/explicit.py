@@ -69,7 +69,7 @@ class SymplecticEuler(Integrator):
         zero = jnp.asarray(0)
         info = StepInfo(iterations=zero, evaluations=jnp.asarray(1), residual=jnp.asarray(0.0),
                         converged=jnp.asarray(True), inverted=zero, result=jnp.asarray(0, jnp.int32),
-                        fallback=jnp.asarray(False), overflow=jnp.asarray(False))
+                        fallback=jnp.asarray(False), overflow=jnp.asarray(False), tunnelled=jnp.asarray(0, jnp.int32))
         return State(x=x, v=v, rot=q, t=state.t + self.dt), memory, info
 
     def templates(self, model: Model, call: str) -> tuple[str, ...]:

@@ -284,8 +284,9 @@ def solve_step(model: Model, prep: Prepared, state: State, activation, force, *,
     info = StepInfo(iterations=sol.iterations, evaluations=sol.evaluations,
                     residual=sol.gnorm / (scale + opts.atol / opts.tol), converged=converged, inverted=inverted,
                     result=RESULTS.of(finite=finite, converged=converged, inverted=inverted, inverted0=inverted0,
-                                      overflow=sol.overflow),
-                    fallback=jnp.asarray(sol.fallback), overflow=jnp.asarray(sol.overflow))
+                                      overflow=sol.overflow, tunnelled=sol.tunnelled),
+                    fallback=jnp.asarray(sol.fallback), overflow=jnp.asarray(sol.overflow),
+                    tunnelled=jnp.asarray(sol.tunnelled, jnp.int32))
     return sol, info
 
 

@@ -374,7 +374,7 @@ def newton_rollout(model: Model, params: Params, state0: State, n_steps: int | N
     result = RESULTS.of(finite=converged, converged=converged, inverted=inverted, inverted0=count(state0.x[None])[0])
     info = StepInfo(iterations=iters, evaluations=evals, residual=residuals, converged=converged,
                     inverted=inverted, result=result, fallback=jnp.zeros(n_steps, bool),
-                    overflow=jnp.zeros(n_steps, bool))
+                    overflow=jnp.zeros(n_steps, bool), tunnelled=jnp.zeros(n_steps, jnp.int32))
     return Trajectory(x=jnp.stack(xs), v=jnp.stack(vs), info=info)
 
 

@@ -56,6 +56,7 @@ import numpy as np
 
 from softbody._interfaces import Integrator
 from softbody._types import RESULTS, Model, Params, Prepared, SceneError, State, StepInfo
+from softbody.contact.report import report
 from softbody.elastic import deformation_gradient
 from softbody.model import clamp, initial_state, prepare
 from softbody.objective import accelerations, step_problem
@@ -66,7 +67,7 @@ Array = jax.Array
 
 class SimulationError(RuntimeError):
     """A step failed (:class:`~softbody._types.RESULTS`): it stopped at the iteration cap,
-    became non-finite, inverted tets or overflowed a contact search. The message names the first failing step, what
+    became non-finite, inverted tets, overflowed a contact search or let surfaces pass through each other. The message names the first failing step, what
     failed and the fix. Traced (under an outer ``jax.jit``/``jax.grad``) the same message
     is raised at run time by equinox instead: a ``jax.errors.JaxRuntimeError`` that
     contains it (an ``equinox.EquinoxRuntimeError`` under ``equinox.filter_jit``)."""
@@ -85,13 +86,20 @@ def _inverted(model: Model, prep: Prepared, x) -> Array:
 
 #: What a failure message can name, in the order of its branch: the iteration cap, the
 #: positions / velocities / force residual going non-finite, inverted tets, an overflowing
-#: contact search.
-_VARIANTS = ("max_iterations", "positions", "velocities", "force residual", "inverted", "overflow")
+#: contact search, surfaces that passed through each other.
+_VARIANTS = ("max_iterations", "positions", "velocities", "force residual", "inverted", "overflow", "tunnelled")
 
 #: The message of a step whose contact search between bodies overflowed.
 _OVERFLOW = ("{where}: the contact search between bodies found more candidate pairs than its capacity holds, so "
              "contacts may be missing; rebuild with a larger capacity, softbody.contact.pairs.Touch(..., capacity=...) "
              "(softbody.contact.broad_phase.required_capacity measures what a configuration needs).")
+
+
+#: The message of a step in which surfaces kept apart by rows between bodies passed through each other.
+_TUNNELLED = ("{where}: surfaces kept apart by rows between bodies passed through each other (a vertex crossed a "
+              "triangle or an edge crossed an edge of the other body during the step; the rows, chosen at the step's "
+              "start and predicted end, missed it): a body moved farther in one step than the contact search sees. "
+              "Reduce Options.dt (now {dt:g} s) or the speeds.")
 
 
 def _step_templates(model: Model, call: str = "rollout") -> tuple[str, ...]:
@@ -107,7 +115,8 @@ def _step_templates(model: Model, call: str = "rollout") -> tuple[str, ...]:
                  "positive definite, from a non-positive mass, stiffness or time step, shows here too.)")
     inverted = (f"step {{step}}: more tets inverted (det F <= 0) than in the initial state; {call}(..., "
                 f"throw=False) returns the counts in info.inverted. {_FIXES}.")
-    return (cap, *(nonfinite % what for what in _VARIANTS[1:4]), inverted, _OVERFLOW.format(where="step {step}"))
+    return (cap, *(nonfinite % what for what in _VARIANTS[1:4]), inverted, _OVERFLOW.format(where="step {step}"),
+            _TUNNELLED.format(where="step {step}", dt=o.dt))
 
 
 def _static_templates(model: Model) -> tuple[str, ...]:
@@ -120,7 +129,8 @@ def _static_templates(model: Model) -> tuple[str, ...]:
                  f"may exceed what the body can carry). {_FIXES}.")
     inverted = (f"the static solution has more inverted tets (det F <= 0) than x0; solve_static(..., "
                 f"throw=False) returns the count in info.inverted. {_FIXES}.")
-    return (cap, *(nonfinite % what for what in _VARIANTS[1:4]), inverted, _OVERFLOW.format(where="the static solve"))
+    return (cap, *(nonfinite % what for what in _VARIANTS[1:4]), inverted, _OVERFLOW.format(where="the static solve"),
+            _TUNNELLED.format(where="the static solve", dt=o.dt))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -148,8 +158,8 @@ def _first_failure(result, x_after, v_after):
     k = jnp.argmax(failed)
     code = result[k]
     what = jnp.where(~jnp.all(jnp.isfinite(x_after[k])), 1, jnp.where(~jnp.all(jnp.isfinite(v_after[k])), 2, 3))
-    variant = jnp.where(code == int(RESULTS.max_iterations), 0,
-                        jnp.where(code == int(RESULTS.nonfinite), what, jnp.where(code == int(RESULTS.overflow), 5, 4)))
+    variant = jnp.select([code == int(RESULTS.max_iterations), code == int(RESULTS.nonfinite),
+                          code == int(RESULTS.overflow), code == int(RESULTS.tunnelled)], [0, what, 5, 6], 4)
     return jnp.any(failed), variant * result.shape[0] + k
 
 
@@ -350,7 +360,7 @@ def contact_forces(model: Model, params: Params, traj: Trajectory, controls=None
     Each step's solution is a fixed point of the contact iteration, at which the force the
     contact rows exert on a vertex is the step objective's gradient there (each step rebuilt
     as the scene's integrator built it, ``starts``)
-    (:meth:`softbody.contact.Contact.report`); the states are the contact step's decision
+    (:func:`softbody.contact.report.report`); the states are the contact step's decision
     at the solution. Computed from the trajectory (one objective evaluation per step, all
     steps at once), so rollouts carry no contact arrays.
 
@@ -390,7 +400,7 @@ def _contact_forces(model, params, xs, vs, controls, forces, t0):
         state = _step_start(model, prep, State(x=x_n, v=v_n, rot=q_n, t=t))
         problem, _, threshold, _ = step_problem(model, prep, state, _activation(model, a), f)
         q = cold_start(deformation_gradient(model, prep.dminv, jnp.where(free > 0, x, state.x)))
-        return model.step.contact.report(problem, model.step.coordinates, x, q, threshold, model.options.max_iter)
+        return report(model.step.contact, problem, model.step.coordinates, x, q, threshold, model.options.max_iter)
 
     return jax.vmap(one, in_axes=(0, 0, 0, 0, None if controls is None else 0, None if forces is None else 0))(
         x_start, v_start, times, xs[1:], controls, forces)
@@ -484,7 +494,7 @@ def integrate(integrator: Integrator, model: Model, params: Params, state0: Stat
         # the positions it returns are finite but not a solution.
         finite = jnp.all(jnp.isfinite(new.x)) & jnp.all(jnp.isfinite(new.v)) & jnp.isfinite(info.residual)
         result = RESULTS.of(finite=finite, converged=info.converged, inverted=info.inverted, inverted0=inverted0,
-                            overflow=info.overflow)
+                            overflow=info.overflow, tunnelled=info.tunnelled)
         info = dataclasses.replace(info, result=jnp.where(bad, int(RESULTS.nonfinite), result).astype(jnp.int32))
         new, new_memory = jax.tree.map(lambda n, o: jnp.where(bad, o, n), (new, new_memory), (state, memory))
         return (new, new_memory, bad | ~finite), (new.x, new.v, info, a)

@@ -93,6 +93,7 @@ class Solution(NamedTuple):
     gnorm: Array  # final |g|
     fallback: Array = False  # bool: a contact step's fast iteration fell short (see StepInfo.fallback)
     overflow: Array = False  # bool: a contact search overflowed its capacity (see StepInfo.overflow)
+    tunnelled: Array = 0  # int: surface pairs that passed through each other (see StepInfo.tunnelled)
 
 
 class NonlinearSolver:

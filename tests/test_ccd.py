@@ -353,6 +353,31 @@ def test_tunnelled_matches_all_pairs_on_two_spheres():
     assert counts[0] == 0 and counts[-1] > 0
 
 
+def test_groups_count_only_crossings_between_allowed_bodies():
+    """Two spheres that pass into each other while one also folds through itself: with
+    ``allowed=[(0, 1)]`` only the pairs across the two bodies count, as all pairs tested
+    exactly with the same restriction."""
+    s, faces = _sphere(20, 0.5)
+    n = len(s)
+    tri = np.concatenate([faces, faces + n])
+    edges = ccd.surface_edges(tri)
+    groups = np.repeat([0, 1], n)
+    x0 = np.concatenate([s, s + [1.2, 0, 0]])
+    x1 = np.concatenate([s + [0.25, 0, 0], s + [0.95, 0, 0]])
+    x1[:n, 2] *= np.where(s[:, 2] > 0, -1.0, 1.0)  # the first sphere's top passes through its bottom
+    x1 = x1 + np.random.default_rng(2).normal(0, 0.02, x1.shape)
+    vt_all = np.stack(np.meshgrid(np.arange(2 * n), np.arange(len(tri)), indexing="ij"), -1).reshape(-1, 2)
+    vt_all = vt_all[groups[vt_all[:, 0]] != groups[tri[vt_all[:, 1], 0]]]
+    i, j = np.triu_indices(len(edges), 1)
+    ee_all = np.stack([i, j], 1)
+    ee_all = ee_all[groups[edges[ee_all[:, 0], 0]] != groups[edges[ee_all[:, 1], 0]]]
+    across = ccd.tunnelled(x0, x1, tri, capacity=2000, edge_capacity=2000, groups=groups, allowed=[(0, 1)])
+    every = ccd.tunnelled(x0, x1, tri, capacity=4000, edge_capacity=4000)
+    assert not bool(across.overflow) and not bool(every.overflow)
+    assert int(across.count) == int(ccd.crossings(x0, x1, tri, edges, vt_all, ee_all).count) > 0
+    assert int(every.count) > int(across.count)  # the self-crossings count without groups
+
+
 def test_edge_candidates_against_brute_force():
     s, faces = _sphere(24, 0.5)
     edges = ccd.surface_edges(faces)

@@ -18,7 +18,7 @@ from softbody.model import Options, SceneError, build, initial_state, prepare
 from softbody.contact.pairs import Touch, every_pair
 from softbody.rigid import RigidBody
 from softbody.scene import SoftBody
-from softbody.simulate import SimulationError, contact_forces, rollout
+from softbody.simulate import SimulationError, check_trajectory, contact_forces, rollout
 from softbody._types import RESULTS
 
 from test_rigid import box
@@ -73,6 +73,7 @@ def test_bodies_that_touch_share_anderson_coefficients_and_others_keep_their_own
 def test_block_rests_on_slab(scene):
     model, params = scene
     traj = rollout(model, params, initial_state(model), n_steps=30)  # throws unless every step converged
+    assert not np.any(np.asarray(traj.info.tunnelled))  # the continuous collision check saw no crossing
     x = np.asarray(traj.x)
     gaps = _row_gaps(model, params, traj.x)
     edge = 0.01
@@ -167,6 +168,44 @@ def test_a_search_that_overflows_its_capacity_is_never_silent():
     assert int(traj.info.result[0]) == RESULTS.overflow and bool(traj.info.overflow[0])
     with pytest.raises(SimulationError, match=r"step 0: the contact search .*\.Touch\(\.\.\., capacity=\.\.\.\)"):
         rollout(model, params, _launched(model, 0.3), n_steps=1)
+
+
+def test_a_block_thrown_through_the_slab_in_one_step_stops_on_it():
+    """Thrown down at 3 m/s, the block would move 3 cm in one step, through the 1 cm slab:
+    at the step's predicted end its vertices lie nearest the slab's bottom face. Rows meet
+    the first triangle a vertex's path crosses, from the side it came from, so the block
+    stops on the slab's top instead; the step's continuous collision check finds no
+    crossing, and the block comes to rest on its rows. (The fast block's swept boxes need
+    a larger broad-phase capacity than the default.)"""
+    model, params = _scene(options=Options(dt=DT, tol=1e-8, max_iter=5000), capacity=4096)
+    state = _launched(model, 0.0)
+    state = eqx.tree_at(lambda s: s.v, state, state.v.at[N_SLAB:, 2].set(-3.0))
+    traj = rollout(model, params, state, n_steps=6)  # throws unless every step converged, without crossings
+    assert not np.any(np.asarray(traj.info.tunnelled))
+    gaps = _row_gaps(model, params, traj.x)
+    assert gaps.min() > -0.1 * THICKNESS and abs(gaps[-1]) < 1e-6  # stopped on the slab, resting at the thickness
+
+
+def test_a_crossing_the_rows_missed_is_never_silent(scene):
+    """The continuous collision check counts the surface pairs that meet during a step (the
+    block moved straight through the slab: its vertices cross the slab's triangles, its edges
+    the slab's edges), a step with crossings ends with ``RESULTS.tunnelled`` whatever else it
+    reports, and the rollout's check says so, naming the fix."""
+    model, params = scene
+    generator, p = model.rows[0], params.rows[0]
+    x0 = jnp.asarray(model.mesh.points)
+    through = x0.at[N_SLAB:, 2].add(-0.03)
+    count, _ = generator.crossed(x0, through, p)  # (its buffers overflow here: they hold 4 pairs per vertex)
+    assert int(count) > 0
+    assert int(generator.crossed(x0, x0.at[N_SLAB:, 0].add(0.01), p)[0]) == 0  # sliding along: none
+    assert int(RESULTS.of(finite=True, converged=True, inverted=0, inverted0=0, overflow=True, tunnelled=count)) \
+        == RESULTS.tunnelled
+    traj = rollout(model, params, initial_state(model), n_steps=1, throw=False)
+    assert int(traj.info.result[0]) == RESULTS.success and int(traj.info.tunnelled[0]) == 0
+    traj = eqx.tree_at(lambda t: t.info.result, traj, jnp.full(1, int(RESULTS.tunnelled), jnp.int32))
+    with pytest.raises(SimulationError, match=r"step 0: surfaces kept apart .* passed through each other.*Reduce "
+                                              r"Options\.dt \(now 0\.01 s\)"):
+        check_trajectory(model, traj)
 
 
 @pytest.mark.slow

@@ -53,8 +53,8 @@ def _loads(model, step: int, vertices, fz: float) -> np.ndarray:
 
 
 def test_codes_are_plain_integers():
-    assert [int(c) for c in RESULTS] == [0, 1, 2, 3, 4]
-    assert [c.name for c in RESULTS] == ["success", "max_iterations", "nonfinite", "inverted", "overflow"]
+    assert [int(c) for c in RESULTS] == [0, 1, 2, 3, 4, 5]
+    assert [c.name for c in RESULTS] == ["success", "max_iterations", "nonfinite", "inverted", "overflow", "tunnelled"]
     assert "iteration cap" in RESULTS.max_iterations.message
 
 

@@ -13,7 +13,8 @@ One job per module:
 * :mod:`~softbody.contact.law`: the contact law of a row (stick, slide, separate) and the
   contact states it reports.
 * :mod:`~softbody.contact.solver`: :class:`Contact`, the splitting iteration that solves a
-  step with the rows, and its report.
+  step with the rows.
+* :mod:`~softbody.contact.report`: the contact forces and states at a step's solution.
 * :mod:`~softbody.contact.splitting`: the diagonal splittings it sweeps with.
 * :mod:`~softbody.contact.active_set`: the opt-in active-set iteration on the prefactored
   matrix.

@@ -455,7 +455,8 @@ def _touching(edges: np.ndarray) -> int:
     return int(len(edges) + np.sum(degree * (degree - 1)))
 
 
-def edge_candidates(x0, x1, edges, margin, capacity: int, *, work: int | None = None):
+def edge_candidates(x0, x1, edges, margin, capacity: int, *, work: int | None = None, groups=None,
+                    allowed=None):
     """The (edge, edge) pairs without a common vertex whose swept boxes overlap.
 
     Runs the broad phase's hashed grid (:func:`softbody.contact.broad_phase.candidates`,
@@ -473,6 +474,10 @@ def edge_candidates(x0, x1, edges, margin, capacity: int, *, work: int | None = 
         margin: scalar >= 0, as for the broad phase.
         capacity: static int >= 1, the number of output pairs.
         work: static int, the broad phase's budget of box tests (its default where None).
+        groups, allowed: optional, as for :func:`softbody.contact.broad_phase.candidates`
+            (``(n,)`` static body id per vertex, each edge within one body, and the static
+            unordered ``(group_i, group_j)`` pairs that count): only edge pairs between
+            allowed bodies are returned.
 
     Returns:
         ``(pairs, count, overflow)``: (capacity, 2) int32 ``(edge row, edge row)`` pairs with
@@ -496,9 +501,14 @@ def edge_candidates(x0, x1, edges, margin, capacity: int, *, work: int | None = 
     lo = jnp.minimum(ends0.min(1), ends1.min(1))
     hi = jnp.maximum(ends0.max(1), ends1.max(1))
     boxes0, boxes1 = jnp.concatenate([x0, lo]), jnp.concatenate([x1, hi])
+    if groups is not None:  # each edge's fictitious point lies in its edge's body
+        groups = _static(groups, "groups").astype(np.int64).reshape(-1)
+        groups = np.concatenate([groups, groups[edg[:, 0]]])
+    # pairs of one edge with itself or with one sharing an end come back only within a body
+    touching = _touching(edg) if groups is None or any(a == b for a, b in allowed or ()) else 0
     found = broad_phase.candidates(boxes0, boxes1, np.arange(n, n + count_e), edg[:, [0, 1, 1]],
-                                   margin, _touching(edg) + 2 * capacity, work=work,
-                                   exclude_incident=False)
+                                   margin, touching + 2 * capacity, work=work,
+                                   exclude_incident=False, groups=groups, allowed=allowed)
     i, j = found.vertex - n, found.triangle
     ei, ej = jnp.asarray(edg)[i], jnp.asarray(edg)[j]
     keep = found.valid & (i < j) & ~jnp.any(ei[:, :, None] == ej[:, None, :], (1, 2))
@@ -527,7 +537,7 @@ class Tunnelled(NamedTuple):
 
 
 def tunnelled(x0, x1, triangles, *, capacity: int, margin=0.0, edge_capacity: int | None = None,
-              tol=TOL) -> Tunnelled:
+              tol=TOL, groups=None, allowed=None) -> Tunnelled:
     """Whether a surface passed through itself or another surface during one step.
 
     Tests every surface vertex against every triangle and every edge against every edge
@@ -547,6 +557,9 @@ def tunnelled(x0, x1, triangles, *, capacity: int, margin=0.0, edge_capacity: in
         edge_capacity: static int >= 1, the (edge, edge) candidate buffer (see
             :func:`edge_candidates`); default ``capacity + E`` for ``E`` surface edges.
         tol: scalar > 0, the relative tolerance of :func:`vertex_triangle_toi`.
+        groups, allowed: optional, as for :func:`softbody.contact.broad_phase.candidates`:
+            only pairs between the allowed bodies count (e.g. ``allowed=[(0, 1)]`` for two
+            bodies passing through each other, not through themselves).
 
     Returns:
         :class:`Tunnelled`. Where ``overflow`` is set, rerun with larger capacities
@@ -562,8 +575,18 @@ def tunnelled(x0, x1, triangles, *, capacity: int, margin=0.0, edge_capacity: in
     if edge_capacity is None:
         edge_capacity = capacity + len(edges)
     points = np.unique(tri)
-    vt = broad_phase.candidates(x0, x1, points, tri, margin, capacity)
+    vt = broad_phase.candidates(x0, x1, points, tri, margin, capacity, groups=groups, allowed=allowed)
     vt_pairs = jnp.where(vt.valid[:, None], jnp.stack([vt.vertex, vt.triangle], 1), -1)
-    ee_pairs, _, ee_overflow = edge_candidates(x0, x1, edges, margin, edge_capacity)
-    found = crossings(x0, x1, tri, edges, vt_pairs, ee_pairs, tol=tol)
-    return Tunnelled(found.count, found.earliest, vt.overflow | ee_overflow)
+    ee_pairs, ee_count, ee_overflow = edge_candidates(x0, x1, edges, margin, edge_capacity, groups=groups,
+                                                      allowed=allowed)
+
+    def exact(x0, x1, vt_pairs, ee_pairs):
+        found = crossings(x0, x1, tri, edges, vt_pairs, ee_pairs, tol=tol)
+        return found.count, found.earliest
+
+    def none(x0, x1, vt_pairs, ee_pairs):
+        return jnp.int32(0), jnp.asarray(jnp.inf, jnp.result_type(x0, x1, float))
+
+    # a step whose swept boxes overlap nowhere (surfaces kept apart) skips the exact tests
+    count, earliest = jax.lax.cond((vt.count > 0) | (ee_count > 0), exact, none, x0, x1, vt_pairs, ee_pairs)
+    return Tunnelled(count, earliest, vt.overflow | ee_overflow)

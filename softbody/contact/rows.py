@@ -74,6 +74,15 @@ class _Pairs(NamedTuple):
         """Whether some generator's search for its rows overflowed its capacity."""
         return functools.reduce(jnp.logical_or, (selection[1] for selection in self.selection), jnp.asarray(False))
 
+    def crossed(self, x_start, x_end):
+        """``(count, overflow)``: the surface pairs that met during a step from ``x_start`` to
+        ``x_end`` over every generator (:meth:`~softbody._interfaces.PairRows.crossed`)."""
+        count, overflow = jnp.asarray(0, jnp.int32), jnp.asarray(False)
+        for generator, params, _ in self.rows:
+            c, o = generator.crossed(x_start, x_end, params)
+            count, overflow = count + c, overflow | o
+        return count, overflow
+
     def gap(self, x):
         """The smallest gap of the rows at ``x`` (``_FAR`` without rows)."""
         return jnp.min(self.frame(x).phi) if self.rows else jnp.asarray(_FAR, x.dtype)
