@@ -247,6 +247,12 @@ def _earliest(t, distance2, eta):
     return jnp.min(jnp.where(hit, t, jnp.inf), -1)
 
 
+def _at(t, x0, dx):
+    """Positions ``(..., k, 3)`` at the ``k`` times ``t`` ``(..., k)`` of a point moving from
+    ``x0`` by ``dx`` ``(..., 3)``."""
+    return x0[..., None, :] + t[..., None] * dx[..., None, :]
+
+
 def vertex_triangle_toi(p0, p1, a0, a1, b0, b1, c0, c1, *, tol=TOL):
     """The earliest time at which a moving point lies in a moving triangle.
 
@@ -277,11 +283,7 @@ def vertex_triangle_toi(p0, p1, a0, a1, b0, b1, c0, c1, *, tol=TOL):
             for (u0, du), (v0, dv) in (((b0, db), (c0, dc)), ((c0, dc), (a0, da)),
                                        ((a0, da), (b0, db)))]
     t = jnp.concatenate([_times(plane), _side_times(jnp.stack(side, -2))], -1)
-
-    def at(x0, dx):
-        return x0[..., None, :] + t[..., None] * dx[..., None, :]
-
-    d2 = _point_triangle2(at(p0, dp), at(a0, da), at(b0, db), at(c0, dc))
+    d2 = _point_triangle2(_at(t, p0, dp), _at(t, a0, da), _at(t, b0, db), _at(t, c0, dc))
     eta = tol * _size(a0, (p0, p1, a1, b0, b1, c0, c1))
     return _earliest(t, d2, eta)
 
@@ -316,11 +318,7 @@ def edge_edge_toi(p0, p1, q0, q1, r0, r1, s0, s1, *, tol=TOL):
                                            ((r0, dr), s0 - r0, ds - dr, ((p0, dp), (q0, dq))))
             for x0, dx in ends]
     t = jnp.concatenate([_times(plane), _side_times(jnp.stack(side, -2))], -1)
-
-    def at(x0, dx):
-        return x0[..., None, :] + t[..., None] * dx[..., None, :]
-
-    d2 = _segment_segment2(at(p0, dp), at(q0, dq), at(r0, dr), at(s0, ds))
+    d2 = _segment_segment2(_at(t, p0, dp), _at(t, q0, dq), _at(t, r0, dr), _at(t, s0, ds))
     eta = tol * _size(p0, (p1, q0, q1, r0, r1, s0, s1))
     return _earliest(t, d2, eta)
 
