@@ -383,10 +383,8 @@ def prepare(model: Model, params: Params, *, static: bool = False, dt: float | N
 
     if static:
         inertia, weight = Statics(), w_s + model.step.volume_weight * w_v
-        diag_mass = jnp.zeros_like(mass)
     else:
         inertia, weight = Dynamics(h), w_s + model.step.volume_weight * w_v + w_b / h
-        diag_mass = mass / h**2 + mass_alpha / h
     local = local_matrices(dminv, volume * weight)  # (t, 4, 4)
     term_prep = tuple(term.prepare(model, p, dminv, volume) for term, p in zip(model.terms, params.actuators))
     added = [(term.stencil(), term.mass(tp)) for term, tp in zip(model.terms, term_prep) if isinstance(term, VertexTerm)]
@@ -394,8 +392,6 @@ def prepare(model: Model, params: Params, *, static: bool = False, dt: float | N
     if added:  # terms with mass of their own (a membrane's areal density)
         extra = sum(jnp.zeros(model.n_vertices).at[s].add(m) for s, m in added)
         mass = mass + extra
-        if not static:
-            diag_mass = diag_mass + extra / h**2
     for term, tp in zip(model.terms, term_prep):
         if isinstance(term, ElementTerm):
             local = local.at[tp.tets].add(tp.local_matrices)
@@ -405,7 +401,8 @@ def prepare(model: Model, params: Params, *, static: bool = False, dt: float | N
         if index is not None:
             data = data.at[index].add(jnp.reshape(term.blocks(tp), -1))
     data = data[:nnz]
-    data = data.at[model.diag_to_data].add(diag_mass)
+    # the inertia term's Hessian is diagonal: M / h^2 + alpha M / h, nothing in statics
+    data = data.at[model.diag_to_data].add(inertia.hessian_diagonal(mass, mass_alpha))
     # With partly held vertices, one matrix per axis (linsolve.PerColumn): each drops the
     # couplings of the vertices held along its axis.
     factor = model.linear_solver.factorize(

@@ -294,7 +294,7 @@ class Touch(PairRows):
             chosen = jnp.asarray(faces)[jnp.where(nearest < len(faces), nearest, 0)]  # (P, 3)
             reach = params["thickness"] + 2.0 * (motion[verts] + jnp.max(motion[chosen], axis=1)) + 1e-9
             picks.append(chosen)
-            crossed = jnp.zeros(len(verts), bool).at[row].max(tie & (score < -1.0))
+            crossed = best < -1.0  # the chosen triangle is one the vertex's path crosses
             valid.append(crossed | (jnp.full(len(verts), jnp.inf).at[row].min(jnp.where(tie, dist, jnp.inf)) <= reach))
             overflow = overflow | found.overflow
         return jax.lax.stop_gradient(((jnp.concatenate(picks), jnp.concatenate(valid)), overflow))
@@ -317,7 +317,6 @@ class Touch(PairRows):
             phi=phi, normal=normal,
             mu_s=params["mu_s"] * ones, mu_k=params["mu_k"] * ones, restitution=params["restitution"] * ones)
 
-
     def crossed(self, x_start, x_end, params):
         """Whether the two surfaces passed through each other during a step moving every
         vertex on a straight line from ``x_start`` to ``x_end`` (continuous collision
@@ -329,7 +328,8 @@ class Touch(PairRows):
         vertices, triangles = self._bound()
         faces = np.concatenate(triangles)
         groups = np.full(x_end.shape[0], 2, np.int64)
-        groups[triangles[1].ravel()], groups[triangles[0].ravel()] = 0, 1  # the first pass's vertices, the second's
+        # one group per body (triangles[0] is one body's surface, triangles[1] the other's)
+        groups[triangles[1].ravel()], groups[triangles[0].ravel()] = 0, 1
         capacity = self.capacity or _CROSSING_CANDIDATES_PER_VERTEX * sum(len(v) for v in vertices)
         found = ccd.tunnelled(*jax.lax.stop_gradient((x_start, x_end)), faces, capacity=capacity,
                               edge_capacity=capacity, groups=groups, allowed=[(0, 1)])
