@@ -162,6 +162,41 @@ def test_an_aligned_stack_keeps_its_rows_at_the_edges():
         assert float(jnp.min(frame.phi)) > -1e-8 and int(jnp.sum(frame.phi < 1e-6)) >= 9
 
 
+def test_one_touch_among_three_bodies_holds_the_stack_as_the_pairs_do():
+    """``Touch("top", "box", "slab")``, one search over the three surfaces, one row per
+    surface vertex with the nearest other body, steps the aligned stack as the two pairwise
+    generators do: every step converged, positions equal to 1e-9 m (1e-6 of the thickness;
+    the two differ in redundant rows out of reach and in summation order), with fewer rows
+    (each middle vertex has one, not one per pair)."""
+    box = grid_box((0.02, 0.02, 0.02), (2, 2, 2), origin=(-0.01, -0.01, 0.01 + THICKNESS))
+    on_top = grid_box((0.02, 0.02, 0.02), (2, 2, 2), origin=(-0.01, -0.01, 0.03 + 2 * THICKNESS))
+    material = Material(E=1e6, nu=0.3, density=1000.0)
+    bodies = [SoftBody(SLAB, material, fixed="zmin", name="slab"), SoftBody(box, material, name="box"),
+              SoftBody(on_top, material, name="top")]
+    x = {}
+    for name, rows in [("pairs", [Touch("box", "slab", thickness=THICKNESS), Touch("top", "box", thickness=THICKNESS)]),
+                       ("one", [Touch("top", "box", "slab", thickness=THICKNESS)])]:
+        model, params = build(bodies, rows=rows, options=Options(dt=DT, tol=1e-8, max_iter=3000))
+        x[name] = np.asarray(rollout(model, params, initial_state(model), n_steps=8).x)  # throws unless converged
+        if name == "one":
+            surfaces = sum(len(np.unique(model.mesh.regions[b].faces)) for b in ("slab", "box", "top"))
+            assert model.rows[0].size == surfaces
+    np.testing.assert_allclose(x["one"], x["pairs"], rtol=0, atol=1e-9)
+    assert x["one"][-1, N_SLAB:, 2].min() > 0.01  # above the slab's top
+
+
+def test_touch_among_bodies_refuses_before_compiling():
+    material = Material(E=1e5)
+    slab, block = SoftBody(SLAB, material, name="slab"), SoftBody(BLOCK, material, name="block")
+    with pytest.raises(SceneError, match="two or more body names"):
+        Touch("block")
+    with pytest.raises(SceneError, match="names one body twice"):
+        Touch("block", "slab", "block")
+    with pytest.raises(SceneError, match="'lid', which is not in the scene"):
+        build([slab, block], rows=[Touch("block", "slab", "lid")])
+    assert Touch("block", "slab", "lid").bodies == ("block", "slab", "lid")
+
+
 def test_a_search_that_overflows_its_capacity_is_never_silent():
     model, params = _scene(capacity=1)
     traj = rollout(model, params, _launched(model, 0.3), n_steps=1, throw=False)

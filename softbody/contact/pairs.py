@@ -70,6 +70,7 @@ step converges and the box comes to rest.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 
 import jax
@@ -151,12 +152,22 @@ def _barycentric(p, a, b, c):
     return jnp.stack([1.0 - v - w, v, w], axis=-1)
 
 
-@dataclasses.dataclass(frozen=True, eq=False)
 class Touch(PairRows):
-    """Contact with dry friction between the surfaces of two bodies of a scene (soft or rigid).
+    """Contact with dry friction between the surfaces of two or more bodies of a scene (soft
+    or rigid).
+
+    ``Touch("block", "slab")`` keeps the two apart; ``Touch("a", "b", "c", ...)`` keeps every
+    named body out of every other one with one broad phase over all their surfaces, so its
+    cost grows with the surfaces' total size, not with the number of pairs (where
+    :func:`every_pair` makes one generator, and one search, per pair). Each surface vertex
+    gets one row, with the nearest triangle of any other named body (a vertex wedged
+    between two other bodies is held out of the nearer one only); a row keeps its vertex at
+    the full thickness from the triangle where the vertex's body is the finer of the two
+    (shorter mean surface edge; the earlier named on a tie), else at half of it (see the
+    module docstring: for two bodies these are its two passes).
 
     Arguments:
-        first, second: the two bodies' names (``SoftBody(..., name=...)``), distinct.
+        bodies: two or more distinct body names (``SoftBody(..., name=...)``).
         mu_s: static friction coefficient (>= 0).
         mu_k: kinetic friction coefficient (``0 <= mu_k <= mu_s``; default ``mu_s``).
         restitution: coefficient of restitution in [0, 1] (0: the bodies stay together
@@ -164,43 +175,55 @@ class Touch(PairRows):
         thickness: the contact distance, m (> 0): a vertex rests this far above the
             other surface.
         capacity: the most candidate (vertex, triangle) pairs the broad phase
-            (:func:`softbody.contact.broad_phase.candidates`) holds per step and direction (static;
-            default 64 per surface vertex; the box tests' budget is 4 times it). A step that
-            finds more ends with the result code ``RESULTS.overflow`` (a rollout raises,
-            naming this fix).
+            (:func:`softbody.contact.broad_phase.candidates`) holds per step for each body's
+            vertices (static; the search holds ``capacity * len(bodies)``; default 64 per
+            surface vertex; the box tests' budget is 4 times it). A step that finds more ends
+            with the result code ``RESULTS.overflow`` (a rollout raises, naming this fix).
 
     The friction coefficients, restitution and thickness are the generator's parameters
     (``params.rows[i]``, a dict with those keys): differentiable.
 
     Raises:
-        SceneError: a name that is not a string, the same body twice, bad coefficients.
+        SceneError: fewer than two names, a name that is not a string, a body named twice,
+            bad coefficients.
     """
 
-    first: str
-    second: str
-    mu_s: float = 0.5
-    mu_k: float | None = None
-    restitution: float = 0.0
-    thickness: float = 1e-3
-    capacity: int | None = None
-    # bound to a scene by bind(): the surface vertices of both bodies (the first's, then
-    # the second's), and the triangles each set meets (the other body's surface)
-    _vertices: tuple | None = dataclasses.field(default=None, repr=False)
-    _triangles: tuple | None = dataclasses.field(default=None, repr=False)
-
-    def __post_init__(self):
-        for name in (self.first, self.second):
+    def __init__(self, *bodies: str, mu_s: float = 0.5, mu_k: float | None = None, restitution: float = 0.0,
+                 thickness: float = 1e-3, capacity: int | None = None):
+        for name in bodies:
             if not isinstance(name, str) or not name:
-                raise SceneError(f"Touch takes two body names (strings), got {name!r}")
-        if self.capacity is not None and (int(self.capacity) != self.capacity or self.capacity < 1):
+                raise SceneError(f"Touch takes body names (strings), got {name!r}")
+        if len(bodies) < 2:
+            raise SceneError(f"Touch takes two or more body names, got {list(bodies)}: contact within a body "
+                             "(self-contact) is not supported yet")
+        if len(set(bodies)) != len(bodies):
+            raise SceneError(f"Touch{tuple(bodies)} names one body twice: contact within a body "
+                             "(self-contact) is not supported yet; name distinct bodies")
+        if capacity is not None and (int(capacity) != capacity or capacity < 1):
             raise SceneError(f"Touch.capacity must be a whole number of candidate pairs >= 1 or None, got "
-                             f"{self.capacity!r}")
-        if self.first == self.second:
-            raise SceneError(f"Touch({self.first!r}, {self.second!r}) names one body twice: contact within a body "
-                             "(self-contact) is not supported yet; name two bodies")
-        mu_k = self.mu_s if self.mu_k is None else self.mu_k
-        object.__setattr__(self, "mu_k", mu_k)
+                             f"{capacity!r}")
+        self.bodies = tuple(bodies)
+        self.mu_s, self.mu_k = mu_s, mu_s if mu_k is None else mu_k
+        self.restitution, self.thickness, self.capacity = restitution, thickness, capacity
+        # bound to a scene by bind(): the surface vertices of the bodies, finer surfaces
+        # first (_Bound)
+        self._scene = None
         self.check(self.init_params())
+
+    def __repr__(self):
+        names = ", ".join(repr(b) for b in self.bodies)
+        return (f"Touch({names}, mu_s={self.mu_s}, mu_k={self.mu_k}, restitution={self.restitution}, "
+                f"thickness={self.thickness}, capacity={self.capacity})")
+
+    @property
+    def first(self) -> str:
+        """The first body's name."""
+        return self.bodies[0]
+
+    @property
+    def second(self) -> str:
+        """The second body's name."""
+        return self.bodies[1]
 
     def init_params(self):
         return {"mu_s": jnp.asarray(float(self.mu_s)), "mu_k": jnp.asarray(float(self.mu_k)),
@@ -216,94 +239,91 @@ class Touch(PairRows):
             return
         mu_s, mu_k, e, thickness = (float(np.asarray(values[k])) for k in ("mu_s", "mu_k", "restitution",
                                                                            "thickness"))
+        names = ", ".join(repr(b) for b in self.bodies)
         if not (0 <= mu_k <= mu_s):
-            raise SceneError(f"Touch({self.first!r}, {self.second!r}): friction needs 0 <= mu_k <= mu_s, got "
-                             f"mu_s={mu_s}, mu_k={mu_k}")
+            raise SceneError(f"Touch({names}): friction needs 0 <= mu_k <= mu_s, got mu_s={mu_s}, mu_k={mu_k}")
         if not 0 <= e <= 1:
-            raise SceneError(f"Touch({self.first!r}, {self.second!r}): restitution must lie in [0, 1], got {e}")
+            raise SceneError(f"Touch({names}): restitution must lie in [0, 1], got {e}")
         if not thickness > 0:
-            raise SceneError(f"Touch({self.first!r}, {self.second!r}): thickness must be a distance > 0 (m), got "
-                             f"{thickness}")
+            raise SceneError(f"Touch({names}): thickness must be a distance > 0 (m), got {thickness}")
 
     def bind(self, mesh, parts) -> "Touch":
         by_name = {part.name: part for part in parts}
-        for name in (self.first, self.second):
+        for name in self.bodies:
             if name not in by_name:
                 raise SceneError(f"Touch names body {name!r}, which is not in the scene; its bodies are "
                                  f"{sorted(str(p.name) for p in parts)}")
-        faces = [np.asarray(mesh.regions[name].faces, np.int64) for name in (self.first, self.second)]
-        # the finer surface's vertices meet the coarser one's triangles at the thickness;
-        # the coarser one's vertices meet the finer one's triangles at half of it
+        faces = [np.asarray(mesh.regions[name].faces, np.int64) for name in self.bodies]
         spacing = [np.mean(np.linalg.norm(mesh.points[f] - mesh.points[np.roll(f, 1, axis=1)], axis=-1))
                    for f in faces]
-        if spacing[1] < spacing[0]:
-            faces = faces[::-1]
-        return dataclasses.replace(self, _vertices=tuple(np.unique(f) for f in faces),
-                                   _triangles=(faces[1], faces[0]))
+        order = sorted(range(len(faces)), key=lambda i: (spacing[i], i))  # finer surfaces first
+        bound = copy.copy(self)
+        bound._scene = _Bound.of([faces[i] for i in order], mesh.n_vertices)
+        return bound
 
     @property
     def size(self) -> int:
-        return 0 if self._vertices is None else sum(len(v) for v in self._vertices)
+        return 0 if self._scene is None else len(self._scene.points)
 
     def vertices(self):
-        """The two surfaces' vertices, ``(k,)`` ints (see :meth:`PairRows.vertices`)."""
-        return np.unique(np.concatenate(self._bound()[0]))
+        """The surfaces' vertices, ``(k,)`` ints (see :meth:`PairRows.vertices`)."""
+        return np.unique(self._bound().points)
 
-    def _bound(self):
-        if self._vertices is None:
+    def _bound(self) -> "_Bound":
+        if self._scene is None:
             raise SceneError("Touch is used before build bound it to a scene: pass it in build(rows=[...])")
-        return self._vertices, self._triangles
+        return self._scene
 
     def select(self, x_start, x_end, params):
-        """Per surface vertex, the triangle of the other body nearest to it at ``x_end``
+        """Per surface vertex, the triangle of another body nearest to it at ``x_end``
         among the broad phase's candidates, and whether it is within reach (see the module
         docstring).
 
         Returns:
             ``((triangles (P, 3) int, valid (P,) bool), overflow)``: ``overflow`` (bool) where
-            a pass found more candidates than its capacity (some rows may be missing).
+            the search found more candidates than its capacity (some rows may be missing).
         """
-        picks, valid, overflow = [], [], jnp.asarray(False)
+        scene = self._bound()
+        verts, faces = scene.points, scene.faces
         motion = jnp.linalg.norm(x_end - x_start, axis=-1)
         # boxes grow by half the largest reach, so a pair within reach always overlaps
         margin = 0.5 * params["thickness"] + 2.0 * jnp.max(motion) + 1e-9
-        for verts, faces in zip(*self._bound()):
-            capacity = self.capacity or _CANDIDATES_PER_VERTEX * len(verts)
-            found = broad_phase.candidates(x_start, x_end, verts, faces, margin, capacity, work=4 * capacity,
-                                           exclude_incident=False)
-            local = np.zeros(x_end.shape[0], np.int32)
-            local[verts] = np.arange(len(verts))
-            row = jnp.asarray(local)[found.vertex]  # (C,) each candidate's vertex, among verts
-            p, tri = x_end[found.vertex], x_end[jnp.asarray(faces)[found.triangle]]  # (C, 3), (C, 3, 3)
-            a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-            normal = _normal(a, b, c)
-            away = p - jnp.sum(_closest(p, a, b, c)[:, :, None] * tri, axis=1)  # from the closest point
-            dist = jnp.linalg.norm(away, axis=-1)
-            # where several triangles are as near (their common edge or corner is nearest), the
-            # one that p lies most squarely over: a vertex just past a box's top edge meets the
-            # top, not the side whose plane passes through it
-            aligned = jnp.abs(jnp.sum(away * normal, -1)) / jnp.where(dist > 0, dist, 1.0)
-            score = dist * (2.0 - jnp.where(dist > 0, aligned, 1.0))
-            # a vertex whose straight path through the step crosses a triangle meets the
-            # first one it crosses, from the side it came from, however far it ends beyond
-            crossing = _crossing(x_start[found.vertex], p, x_start[jnp.asarray(faces)[found.triangle]], tri)
-            score = jnp.where(found.valid, jnp.where(crossing < 1.0, crossing - 2.0, score), jnp.inf)
-            best = jnp.full(len(verts), jnp.inf).at[row].min(score)
-            tie = found.valid & (score == best[row])
-            nearest = jnp.full(len(verts), len(faces)).at[row].min(jnp.where(tie, found.triangle, len(faces)))
-            chosen = jnp.asarray(faces)[jnp.where(nearest < len(faces), nearest, 0)]  # (P, 3)
-            reach = params["thickness"] + 2.0 * (motion[verts] + jnp.max(motion[chosen], axis=1)) + 1e-9
-            picks.append(chosen)
-            crossed = best < -1.0  # the chosen triangle is one the vertex's path crosses
-            valid.append(crossed | (jnp.full(len(verts), jnp.inf).at[row].min(jnp.where(tie, dist, jnp.inf)) <= reach))
-            overflow = overflow | found.overflow
-        return jax.lax.stop_gradient(((jnp.concatenate(picks), jnp.concatenate(valid)), overflow))
+        capacity = (self.capacity * len(self.bodies) if self.capacity else
+                    _CANDIDATES_PER_VERTEX * len(verts))
+        found = broad_phase.candidates(x_start, x_end, verts, faces, margin, capacity, work=4 * capacity,
+                                       exclude_incident=False, groups=scene.groups, allowed=scene.allowed)
+        local = np.zeros(x_end.shape[0], np.int32)
+        local[verts] = np.arange(len(verts))
+        row = jnp.asarray(local)[found.vertex]  # (C,) each candidate's vertex, among verts
+        p, tri = x_end[found.vertex], x_end[jnp.asarray(faces)[found.triangle]]  # (C, 3), (C, 3, 3)
+        a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+        normal = _normal(a, b, c)
+        away = p - jnp.sum(_closest(p, a, b, c)[:, :, None] * tri, axis=1)  # from the closest point
+        dist = jnp.linalg.norm(away, axis=-1)
+        # where several triangles are as near (their common edge or corner is nearest), the
+        # one that p lies most squarely over: a vertex just past a box's top edge meets the
+        # top, not the side whose plane passes through it
+        aligned = jnp.abs(jnp.sum(away * normal, -1)) / jnp.where(dist > 0, dist, 1.0)
+        score = dist * (2.0 - jnp.where(dist > 0, aligned, 1.0))
+        # a vertex whose straight path through the step crosses a triangle meets the
+        # first one it crosses, from the side it came from, however far it ends beyond
+        crossing = _crossing(x_start[found.vertex], p, x_start[jnp.asarray(faces)[found.triangle]], tri)
+        score = jnp.where(found.valid, jnp.where(crossing < 1.0, crossing - 2.0, score), jnp.inf)
+        best = jnp.full(len(verts), jnp.inf).at[row].min(score)
+        tie = found.valid & (score == best[row])
+        nearest = jnp.full(len(verts), len(faces)).at[row].min(jnp.where(tie, found.triangle, len(faces)))
+        chosen = jnp.asarray(faces)[jnp.where(nearest < len(faces), nearest, 0)]  # (P, 3)
+        reach = params["thickness"] + 2.0 * (motion[verts] + jnp.max(motion[chosen], axis=1)) + 1e-9
+        crossed = best < -1.0  # the chosen triangle is one the vertex's path crosses
+        valid = crossed | (jnp.full(len(verts), jnp.inf).at[row].min(jnp.where(tie, dist, jnp.inf)) <= reach)
+        return jax.lax.stop_gradient(((chosen, valid), found.overflow))
 
     def frame(self, x, selection, params) -> PairFrame:
-        vertices, _ = self._bound()
-        reach = np.repeat([1.0, 0.5], [len(v) for v in vertices])  # of the thickness, per pass
-        vertices = np.concatenate(vertices)
+        scene = self._bound()
+        vertices = scene.points
         (triangles, valid), _ = selection
+        # the full thickness where the vertex's surface is the finer, else half of it
+        reach = jnp.where(scene.rank[vertices] < jnp.asarray(scene.rank)[triangles[:, 0]], 1.0, 0.5)
         p, a, b, c = x[vertices], x[triangles[:, 0]], x[triangles[:, 1]], x[triangles[:, 2]]
         normal = _normal(a, b, c)
         bary = jnp.clip(_barycentric(p, a, b, c), 0.0, 1.0)
@@ -318,22 +338,48 @@ class Touch(PairRows):
             mu_s=params["mu_s"] * ones, mu_k=params["mu_k"] * ones, restitution=params["restitution"] * ones)
 
     def crossed(self, x_start, x_end, params):
-        """Whether the two surfaces passed through each other during a step moving every
-        vertex on a straight line from ``x_start`` to ``x_end`` (continuous collision
-        detection between the two bodies only, :func:`softbody.contact.ccd.tunnelled`):
-        ``(count, overflow)`` (see :meth:`PairRows.crossed`). The search's buffers hold
+        """Whether the surfaces passed through each other during a step moving every vertex
+        on a straight line from ``x_start`` to ``x_end`` (continuous collision detection
+        between distinct bodies only, :func:`softbody.contact.ccd.tunnelled`): ``(count,
+        overflow)`` (see :meth:`PairRows.crossed`). The search's buffers hold
         :attr:`capacity` (default four per surface vertex) vertex-triangle and as many
         edge-edge candidates; a step whose rows held the surfaces apart has none (its swept
         boxes do not overlap), so they fill only where a surface came close to passing."""
-        vertices, triangles = self._bound()
-        faces = np.concatenate(triangles)
-        groups = np.full(x_end.shape[0], 2, np.int64)
-        # one group per body (triangles[0] is one body's surface, triangles[1] the other's)
-        groups[triangles[1].ravel()], groups[triangles[0].ravel()] = 0, 1
-        capacity = self.capacity or _CROSSING_CANDIDATES_PER_VERTEX * sum(len(v) for v in vertices)
-        found = ccd.tunnelled(*jax.lax.stop_gradient((x_start, x_end)), faces, capacity=capacity,
-                              edge_capacity=capacity, groups=groups, allowed=[(0, 1)])
+        scene = self._bound()
+        capacity = self.capacity or _CROSSING_CANDIDATES_PER_VERTEX * len(scene.points)
+        found = ccd.tunnelled(*jax.lax.stop_gradient((x_start, x_end)), scene.faces, capacity=capacity,
+                              edge_capacity=capacity, groups=scene.groups, allowed=scene.allowed)
         return found.count, found.overflow
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class _Bound:
+    """A :class:`Touch` on a scene: its bodies' surfaces, finer first.
+
+    Attributes:
+        points: (P,) the surface vertices, body by body (one row each, in this order).
+        faces: (T, 3) the surface triangles, body by body.
+        rank: (n,) each scene vertex's body among them (0 the finest), ``len(bodies)`` off them.
+        groups, allowed: the broad phase's body groups (``rank``) and the pairs of distinct
+            bodies that may touch.
+    """
+
+    points: np.ndarray
+    faces: np.ndarray
+    rank: np.ndarray
+    allowed: tuple
+
+    @property
+    def groups(self) -> np.ndarray:
+        return self.rank
+
+    @classmethod
+    def of(cls, faces: list, n: int) -> "_Bound":
+        rank = np.full(n, len(faces), np.int64)
+        for i, f in enumerate(faces):
+            rank[f.ravel()] = i
+        allowed = tuple((i, j) for i in range(len(faces)) for j in range(i + 1, len(faces)))
+        return cls(np.concatenate([np.unique(f) for f in faces]), np.concatenate(faces), rank, allowed)
 
 
 def every_pair(*names: str, **contact) -> list[Touch]:
