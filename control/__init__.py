@@ -16,6 +16,10 @@ no top-level ``control`` package, so nothing collides with python-control.
 * :mod:`~softbody.control.codesign`: design and controls together (:class:`Design`,
   :class:`CoDesignProblem`, :func:`codesign`).
 * :mod:`~softbody.control.baselines`: CMA-ES on the same variables (:func:`cmaes`).
+* :mod:`~softbody.control.sweep`: design and parameter sweeps on Ray workers, resumable
+  and fault-tolerant (:func:`run_sweep`, :func:`~softbody.control.sweep.grid`,
+  :func:`~softbody.control.sweep.random_design`, :class:`SweepPool` for an optimiser's
+  populations); Ray is imported only when a sweep starts (``pip install softbody[sweep]``).
 * :mod:`~softbody.control.optimize`: the shared optax loop with progress and
   checkpoint/resume (:func:`minimize`).
 """
@@ -28,6 +32,8 @@ from .losses import (Effort, ForwardDistance, Loss, Scaled, Smoothness, Sum, Tar
 from .optimize import OptimizeResult, minimize
 from .policy import MLPPolicy, Observations, PolicyResult, policy_rollout, train_policy
 from .sysid import ESTIMABLE, Observation, SysIdProblem, SysIdResult, identify, synthesize
+from . import sweep
+from .sweep import Pool as SweepPool, SweepError, SweepResult, population_evaluator, run_sweep
 from .trajopt import ControlGrid, ControlProblem, TrajOptResult, optimize_controls
 
 __all__ = [
@@ -40,4 +46,5 @@ __all__ = [
     "ESTIMABLE", "Observation", "SysIdProblem", "SysIdResult", "identify", "synthesize",
     "Design", "CoDesignProblem", "CoDesignResult", "codesign", "project_capped_simplex",
     "CMAResult", "cmaes",
+    "sweep", "run_sweep", "SweepPool", "SweepError", "SweepResult", "population_evaluator",
 ]

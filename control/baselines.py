@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -57,7 +57,7 @@ class CMAResult:
 
 
 def cmaes(
-    fun: Callable[[Any], jax.Array],
+    fun: Callable[[Any], jax.Array] | None,
     theta0,
     *,
     sigma0: float,
@@ -69,6 +69,7 @@ def cmaes(
     target: float | None = None,
     stop: Callable[[Any, float], bool] | None = None,
     progress: bool = True,
+    evaluate: Callable[[list[np.ndarray]], Sequence[float]] | None = None,
 ) -> CMAResult:
     """Minimise ``fun(theta)`` with CMA-ES within a budget of simulations.
 
@@ -88,12 +89,18 @@ def cmaes(
         stop: ``stop(best_theta, best_loss) -> bool`` after each generation (e.g. a
             parameter-error threshold in a study).
         progress: show a progress bar.
+        evaluate: ``evaluate(xs) -> values``, the objective of a whole population at once
+            (a list of flat ``(d,)`` candidates, in the order CMA-ES asked for them), e.g.
+            on sweep workers: :func:`softbody.control.sweep.population_evaluator`. ``nan``
+            marks a failed simulation. Default: ``fun`` compiled here, one candidate after
+            another. The search is the same either way: the same seed asks for the same
+            candidates, so equal values give an equal run. ``fun`` may be None with it.
 
     Returns:
         :class:`CMAResult`.
 
     Raises:
-        ControlError: ``budget < 1`` or ``sigma0 <= 0``.
+        ControlError: ``budget < 1`` or ``sigma0 <= 0``, or neither ``fun`` nor ``evaluate``.
     """
     import cma
 
@@ -101,9 +108,15 @@ def cmaes(
         raise ControlError(f"budget must be >= 1 simulation, got {budget}")
     if not (math.isfinite(sigma0) and sigma0 > 0):
         raise ControlError(f"sigma0 must be a positive step size, got {sigma0}")
+    if fun is None and evaluate is None:
+        raise ControlError("give the objective fun, or evaluate for whole populations")
     x0, unravel = ravel_pytree(jax.tree.map(jnp.asarray, theta0))
     d = x0.size
-    value = jax.jit(lambda x: fun(unravel(x)))
+    if evaluate is None:
+        value = jax.jit(lambda x: fun(unravel(x)))
+
+        def evaluate(xs):
+            return [_evaluate(value, x) for x in xs]
     opts = {"seed": int(seed) or 1, "verbose": -9, "maxfevals": int(budget)}
     if popsize is not None:
         opts["popsize"] = int(popsize)
@@ -121,7 +134,9 @@ def cmaes(
         while sims < budget:
             xs = es.ask()
             xs = xs[: budget - sims]
-            fs = [_evaluate(value, x) for x in xs]
+            fs = [float(f) for f in evaluate(xs)]
+            if len(fs) != len(xs):
+                raise ControlError(f"evaluate returned {len(fs)} values for {len(xs)} candidates")
             sims += len(xs)
             failed += sum(not math.isfinite(f) for f in fs)
             finite = [f for f in fs if math.isfinite(f)]

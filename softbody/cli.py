@@ -23,6 +23,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("softbody.bench", "run a benchmark; writes DIR/<name>.json and a PNG"),
     "advise": ("softbody.advisor", "pick the cheapest mesh, time step and PD tolerance that meet an error"),
     "cache": ("softbody.cache", "show or clear the compiled programs kept between runs"),
+    "sweep": ("softbody.control.sweep", "run a parameter sweep on Ray workers (resumable): a CSV table and a PNG"),
 }
 
 

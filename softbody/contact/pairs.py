@@ -247,7 +247,7 @@ class Touch(PairRows):
         if not thickness > 0:
             raise SceneError(f"Touch({names}): thickness must be a distance > 0 (m), got {thickness}")
 
-    def bind(self, mesh, parts) -> "Touch":
+    def bind(self, mesh, parts) -> Touch:
         by_name = {part.name: part for part in parts}
         for name in self.bodies:
             if name not in by_name:
@@ -269,7 +269,7 @@ class Touch(PairRows):
         """The surfaces' vertices, ``(k,)`` ints (see :meth:`PairRows.vertices`)."""
         return np.unique(self._bound().points)
 
-    def _bound(self) -> "_Bound":
+    def _bound(self) -> _Bound:
         if self._scene is None:
             raise SceneError("Touch is used before build bound it to a scene: pass it in build(rows=[...])")
         return self._scene
@@ -374,7 +374,7 @@ class _Bound:
         return self.rank
 
     @classmethod
-    def of(cls, faces: list, n: int) -> "_Bound":
+    def of(cls, faces: list, n: int) -> _Bound:
         rank = np.full(n, len(faces), np.int64)
         for i, f in enumerate(faces):
             rank[f.ravel()] = i
