@@ -30,6 +30,7 @@ BENCHMARKS = {
     "pareto": "speed against accuracy of PD, Newton, diffrax and explicit Euler on a vibrating cantilever; stability map",
     "scaling": "wall time per simulated second against degrees of freedom and against scenes batched by jax.vmap",
     "contact-pairs": "bodies touching bodies: a cube resting on a slab, a block sliding to rest (stopping distance against v0^2/(2 g mu_k) and a plane obstacle), a stack of three boxes, iterations per step, share of choosing the rows",
+    "many-bodies": "N = 1, 4, 16, 64, 256 soft cubes dropped onto the ground and onto each other under one Touch: time, memory and iterations per step against N, its fitted exponent, broad-phase share",
     "impact-zone": "backward of the collision-response QP: QR form against the full KKT solve at 16x16, 32x32, 64x64 cloth sizes",
 }
 

@@ -1,0 +1,155 @@
+"""Many bodies dropped onto the ground and onto each other: cost per step against their number.
+
+Scene: ``N`` soft 2 cm cubes (one hexahedron of 6 tets each, 8 vertices; E = 1e5 Pa,
+nu = 0.3, density 1e3 kg/m^3) in two layers of ``N / 2`` columns on a square grid (one cube
+for ``N = 1``), each upper cube offset by (0.3, 0.2) of an edge from the one below it so
+that no corners line up, 5 mm apart and above a :class:`~softbody.contact.obstacles.Plane`
+(mu_s = 0.5, mu_k = 0.4). They fall together: the lower layer lands on the ground in the
+third step, the upper one on the lower layer about four steps later. One
+:class:`~softbody.contact.pairs.Touch` over all the cubes (one broad phase over every
+surface, contact thickness 1 mm, the same friction) keeps each out of the others;
+dt = 0.01 s, relative tolerance 1e-6, 30 steps (0.3 s: both impacts and the start of rest).
+
+Reported per ``N`` (``cases``): time per step (median of the steps' mean over 3 timed
+rollouts after a compiling one; compile time apart), iterations per step (median, max),
+whether every step converged, the deepest penetration of a pair row below the contact
+thickness and of a vertex below the ground over all steps (m), the time of choosing a
+step's rows (:meth:`~softbody.contact.pairs.Touch.select`, median of 20, at the last step)
+over the time of a step (``broad_phase_share``), and the memory of one compiled step (the
+argument, output and temporary bytes XLA reports for ``softbody.simulate.step``).
+
+``time_exponent`` is the slope of log(time per step) against log(N) fitted over the cases
+with pair rows (``N >= 4``); 1 is linear. ``all_converged`` and ``max_penetration_m`` are
+over every case.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+EDGE, GAP, THICKNESS, DT, STEPS = 0.02, 0.005, 1e-3, 0.01, 30
+#: the numbers of cubes (the quick variant stops at 16)
+COUNTS = (1, 4, 16, 64, 256)
+
+
+def scene(n: int, cells: int = 1):
+    """``N`` cubes in two offset layers above a plane, one :class:`Touch` over all of them.
+
+    Arguments:
+        n: the number of cubes (>= 1).
+        cells: hexahedra per cube edge.
+
+    Returns:
+        ``(model, params)`` from :func:`softbody.model.build`.
+    """
+    from softbody.contact.obstacles import Plane
+    from softbody.contact.pairs import Touch
+    from softbody.material import Material
+    from softbody.meshing.grid import grid_box
+    from softbody.model import Options, build
+    from softbody.scene import SoftBody
+
+    columns = max(1, n // 2)
+    side = int(np.ceil(np.sqrt(columns)))
+    material = Material(E=1e5, nu=0.3, density=1000.0)
+    pitch = EDGE + 0.015
+    bodies = []
+    for i in range(n):
+        column, level = i % columns, i // columns
+        origin = ((column % side) * pitch + level * 0.3 * EDGE, (column // side) * pitch + level * 0.2 * EDGE,
+                  GAP + level * (EDGE + 2 * GAP))
+        bodies.append(SoftBody(grid_box((EDGE,) * 3, (cells,) * 3, origin=origin), material, name=f"cube{i}"))
+    rows = [Touch(*[b.name for b in bodies], mu_s=0.5, mu_k=0.4, thickness=THICKNESS)] if n > 1 else []
+    return build(bodies, obstacles=[Plane(mu_s=0.5, mu_k=0.4)], rows=rows,
+                 options=Options(dt=DT, tol=1e-6, max_iter=3000))
+
+
+def _case(n: int) -> dict:
+    import jax
+    import jax.numpy as jnp
+
+    from softbody.model import initial_state, prepare
+    from softbody.simulate import rollout, step
+
+    model, params = scene(n)
+    state = initial_state(model, params)
+    start = time.perf_counter()
+    traj = rollout(model, params, state, n_steps=STEPS, throw=False)
+    jax.block_until_ready(traj.x)
+    first = time.perf_counter() - start
+    times = []
+    for _ in range(3):
+        start = time.perf_counter()
+        jax.block_until_ready(rollout(model, params, state, n_steps=STEPS, throw=False).x)
+        times.append((time.perf_counter() - start) / STEPS)
+    step_s = float(np.median(times))
+    memory = jax.jit(lambda p, s: step(model, prepare(model, p), s)).lower(params, state).compile().memory_analysis()
+    step_bytes = None if memory is None else int(memory.argument_size_in_bytes + memory.output_size_in_bytes
+                                                 + memory.temp_size_in_bytes)
+    info = traj.info
+    iterations = np.asarray(info.iterations)
+    x = np.asarray(traj.x)
+    out = {"n": n, "vertices": model.n_vertices, "compile_and_first_s": first - step_s * STEPS,
+           "step_s": step_s, "iterations_median": float(np.median(iterations)),
+           "iterations_max": int(iterations.max()), "iterations": iterations.tolist(),
+           "converged": bool(np.all(np.asarray(info.converged))),
+           "ground_penetration_m": float(max(0.0, -x[:, :, 2].min())), "step_bytes": step_bytes,
+           "row_penetration_m": 0.0, "select_s": None, "broad_phase_share": None}
+    if model.rows:
+        generator, p = model.rows[0], params.rows[0]
+        select = jax.jit(lambda x0, x1: generator.select(x0, x1, p))
+        frame = jax.jit(lambda x0, x1: generator.frame(x1, generator.select(x0, x1, p), p).phi)
+        out["row_penetration_m"] = float(max(0.0, -min(float(jnp.min(frame(traj.x[k - 1], traj.x[k])))
+                                                       for k in range(1, STEPS + 1))))
+        jax.block_until_ready(select(traj.x[-2], traj.x[-1]))
+        picks = []
+        for _ in range(20):
+            start = time.perf_counter()
+            jax.block_until_ready(select(traj.x[-2], traj.x[-1]))
+            picks.append(time.perf_counter() - start)
+        out["select_s"] = float(np.median(picks))
+        out["broad_phase_share"] = out["select_s"] / step_s
+    return out
+
+
+def run(out: Path, quick: bool) -> dict:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cases = []
+    for n in COUNTS[:3] if quick else COUNTS:
+        cases.append(_case(n))
+        print(f"many-bodies: N = {n}: {cases[-1]['step_s'] * 1e3:.1f} ms a step, "
+              f"{cases[-1]['iterations_median']:.0f} iterations (median)", flush=True)
+    paired = [c for c in cases if c["n"] >= 4]
+    exponent = (float(np.polyfit(np.log([c["n"] for c in paired]), np.log([c["step_s"] for c in paired]), 1)[0])
+                if len(paired) >= 2 else None)
+
+    ns = [c["n"] for c in cases]
+    fig, (left, right) = plt.subplots(1, 2, figsize=(10, 4))
+    left.loglog(ns, [c["step_s"] * 1e3 for c in cases], "o-", label="time per step")
+    if paired:
+        ref = paired[0]
+        left.loglog([c["n"] for c in paired], [ref["step_s"] * 1e3 * c["n"] / ref["n"] for c in paired], "k--",
+                    lw=0.8, label="linear in N")
+    left.set(xlabel="cubes N", ylabel="ms per step", title=f"time per step (slope {exponent or 0:.2f}, N >= 4)")
+    left.legend(fontsize=8)
+    right.semilogx(ns, [c["iterations_median"] for c in cases], "o-", label="median")
+    right.semilogx(ns, [c["iterations_max"] for c in cases], "s--", label="max")
+    right.set(xlabel="cubes N", ylabel="contact iterations per step", title="iterations")
+    right.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "many_bodies.png", dpi=120)
+    plt.close(fig)
+    return {
+        "time_exponent": exponent,
+        "all_converged": all(c["converged"] for c in cases),
+        "max_penetration_m": max(max(c["row_penetration_m"], c["ground_penetration_m"]) for c in cases),
+        "thickness_m": THICKNESS,
+        "cases": cases,
+    }
