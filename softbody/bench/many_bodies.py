@@ -11,15 +11,18 @@ surface, contact thickness 1 mm, the same friction) keeps each out of the others
 dt = 0.01 s, relative tolerance 1e-6, 30 steps (0.3 s: both impacts and the start of rest).
 
 Reported per ``N`` (``cases``): time per step (median of the steps' mean over 3 timed
-rollouts after a compiling one; compile time apart), iterations per step (median, max),
+rollouts after a compiling one; compile time apart), as wall time (``step_s``) and as the
+process's CPU time (``step_cpu_s``: on a machine shared with other jobs the wall time
+also counts their share; run it pinned to one core, ``taskset -c 0``), iterations per step (median, max),
 whether every step converged, the deepest penetration of a pair row below the contact
 thickness and of a vertex below the ground over all steps (m), the time of choosing a
 step's rows (:meth:`~softbody.contact.pairs.Touch.select`, median of 20, at the last step)
 over the time of a step (``broad_phase_share``), and the memory of one compiled step (the
 argument, output and temporary bytes XLA reports for ``softbody.simulate.step``).
 
-``time_exponent`` is the slope of log(time per step) against log(N) fitted over the cases
-with pair rows (``N >= 4``); 1 is linear. ``all_converged`` and ``max_penetration_m`` are
+``time_exponent`` is the slope of log(CPU time per step) against log(N) fitted over the
+cases with pair rows (``N >= 4``; ``time_exponent_wall`` the same of the wall time); 1 is
+linear. ``all_converged`` and ``max_penetration_m`` are
 over every case.
 """
 
@@ -80,11 +83,12 @@ def _case(n: int) -> dict:
     traj = rollout(model, params, state, n_steps=STEPS, throw=False)
     jax.block_until_ready(traj.x)
     first = time.perf_counter() - start
-    times = []
+    times, cpu = [], []
     for _ in range(3):
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         jax.block_until_ready(rollout(model, params, state, n_steps=STEPS, throw=False).x)
         times.append((time.perf_counter() - start) / STEPS)
+        cpu.append((time.process_time() - start_cpu) / STEPS)
     step_s = float(np.median(times))
     memory = jax.jit(lambda p, s: step(model, prepare(model, p), s)).lower(params, state).compile().memory_analysis()
     step_bytes = None if memory is None else int(memory.argument_size_in_bytes + memory.output_size_in_bytes
@@ -93,7 +97,7 @@ def _case(n: int) -> dict:
     iterations = np.asarray(info.iterations)
     x = np.asarray(traj.x)
     out = {"n": n, "vertices": model.n_vertices, "compile_and_first_s": first - step_s * STEPS,
-           "step_s": step_s, "iterations_median": float(np.median(iterations)),
+           "step_s": step_s, "step_cpu_s": float(np.median(cpu)), "iterations_median": float(np.median(iterations)),
            "iterations_max": int(iterations.max()), "iterations": iterations.tolist(),
            "converged": bool(np.all(np.asarray(info.converged))),
            "ground_penetration_m": float(max(0.0, -x[:, :, 2].min())), "step_bytes": step_bytes,
@@ -127,15 +131,20 @@ def run(out: Path, quick: bool) -> dict:
         print(f"many-bodies: N = {n}: {cases[-1]['step_s'] * 1e3:.1f} ms a step, "
               f"{cases[-1]['iterations_median']:.0f} iterations (median)", flush=True)
     paired = [c for c in cases if c["n"] >= 4]
-    exponent = (float(np.polyfit(np.log([c["n"] for c in paired]), np.log([c["step_s"] for c in paired]), 1)[0])
-                if len(paired) >= 2 else None)
+
+    def slope(key):
+        if len(paired) < 2:
+            return None
+        return float(np.polyfit(np.log([c["n"] for c in paired]), np.log([c[key] for c in paired]), 1)[0])
+
+    exponent = slope("step_cpu_s")
 
     ns = [c["n"] for c in cases]
     fig, (left, right) = plt.subplots(1, 2, figsize=(10, 4))
-    left.loglog(ns, [c["step_s"] * 1e3 for c in cases], "o-", label="time per step")
+    left.loglog(ns, [c["step_cpu_s"] * 1e3 for c in cases], "o-", label="CPU time per step")
     if paired:
         ref = paired[0]
-        left.loglog([c["n"] for c in paired], [ref["step_s"] * 1e3 * c["n"] / ref["n"] for c in paired], "k--",
+        left.loglog([c["n"] for c in paired], [ref["step_cpu_s"] * 1e3 * c["n"] / ref["n"] for c in paired], "k--",
                     lw=0.8, label="linear in N")
     left.set(xlabel="cubes N", ylabel="ms per step", title=f"time per step (slope {exponent or 0:.2f}, N >= 4)")
     left.legend(fontsize=8)
@@ -148,6 +157,7 @@ def run(out: Path, quick: bool) -> dict:
     plt.close(fig)
     return {
         "time_exponent": exponent,
+        "time_exponent_wall": slope("step_s"),
         "all_converged": all(c["converged"] for c in cases),
         "max_penetration_m": max(max(c["row_penetration_m"], c["ground_penetration_m"]) for c in cases),
         "thickness_m": THICKNESS,
