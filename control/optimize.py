@@ -79,17 +79,17 @@ class OptimizeResult:
 
 
 def progress_bar(enabled: bool):
-    """A rich progress display (or a silent stand-in when ``enabled`` is false).
+    """A progress display (or a silent stand-in when ``enabled`` is false).
 
-    The task's ``stats`` field is shown after the bar; update it with
-    ``progress.update(task, advance=1, stats="...")``.
+    A bar on a terminal and, on a pipe or file, a plain flushed line per update (at most
+    one a second) and at least one every ~10 s (:mod:`softbody.progress`). It offers the
+    calls of :class:`rich.progress.Progress` that the loops here use:
+    ``task = progress.add_task(description, total=n, stats="...")`` and
+    ``progress.update(task, completed=k, stats="...")``.
     """
-    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn,
-                               TimeElapsedColumn, TimeRemainingColumn)
+    from softbody.progress import Bar
 
-    return Progress(SpinnerColumn(), TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                    TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn(),
-                    TextColumn("{task.fields[stats]}"), disable=not enabled, transient=False)
+    return Bar(enabled)
 
 
 #: ``optax.adam(0.05)``, the default optimiser (one shared instance, so that repeated runs

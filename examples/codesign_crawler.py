@@ -31,11 +31,15 @@ import sys
 import time
 from pathlib import Path
 
+if __name__ == "__main__":  # the first line, before the imports of JAX and softbody (seconds)
+    print(f"{Path(__file__).name}: starting (importing JAX and softbody) ...", flush=True)
+
 import jax.numpy as jnp
 import numpy as np
 import optax
 
 from softbody import control as sc
+from softbody import progress
 from softbody.io import check_overwrite, write_metrics
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -76,7 +80,8 @@ def main(argv=None):
     check_overwrite(args.out / "metrics.json", args.force)
     start = time.perf_counter()
 
-    mesh, model, params = caterpillar()
+    with progress.task("meshing and building the caterpillar"):
+        mesh, model, params = caterpillar()
     n_tets = mesh.n_tets
     distance = sc.ForwardDistance(model, axis=(1.0, 0.0, 0.0))
     grid = sc.ControlGrid(TRAIN_PERIODS * PERIOD, model.n_channels, N_KNOTS, period=PERIOD, upper=A_MAX)
@@ -93,7 +98,8 @@ def main(argv=None):
 
     def run(layout, optimizer, label):
         theta0 = {"controls": gait0, "weights": (jnp.asarray(layout),)}
-        res = sc.codesign(problem, theta0, optimizer=optimizer, n_iter=args.iterations, progress=False)
+        res = sc.codesign(problem, theta0, optimizer=optimizer, n_iter=args.iterations)
+        progress.say(f"{label}: running the result for {long_grid.n_steps * DT:.1f} s")
         traj = evaluation.simulate(res.theta)
         metres = float(distance.travelled(traj))
         checks[label] = sanity(traj)
@@ -103,11 +109,14 @@ def main(argv=None):
         return res, metres
 
     hand, hand_training, hand_time, checks = {}, {}, 0.0, {}
-    for name, w in hand_layouts(mesh).items():
+    layouts = hand_layouts(mesh)
+    for i, (name, w) in enumerate(layouts.items()):
+        progress.say(f"layout {i + 1}/{len(layouts) + 1}: {name} (fixed fibres, gait optimised)")
         res, metres = run(w, frozen, name)
         hand[name], hand_training[name] = metres / LENGTH, -res.best_loss
         hand_time += res.optimization.wall_time
     best_hand = max(hand, key=hand.get)
+    progress.say(f"layout {len(layouts) + 1}/{len(layouts) + 1}: co-design (fibres and gait optimised)")
     co, co_metres = run(np.ones(n_tets), joint, "co-design")
     weights = np.asarray(co.theta["weights"][0])
     print(f"co-design {co_metres / LENGTH:.3f} body lengths against the best hand layout ({best_hand}) "
@@ -158,7 +167,7 @@ def main(argv=None):
         "wall_time_s": time.perf_counter() - start,
     }
     write_metrics(args.out / "metrics.json", metrics, force=args.force)
-    print(f"wrote {args.out / 'metrics.json'} ({metrics['wall_time_s']:.0f} s)")
+    print(f"wrote {args.out / 'metrics.json'} ({metrics['wall_time_s']:.0f} s)", flush=True)
     return metrics
 
 

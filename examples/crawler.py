@@ -27,11 +27,15 @@ import argparse
 import time
 from pathlib import Path
 
+if __name__ == "__main__":  # the first line, before the imports of JAX and softbody (seconds)
+    print(f"{Path(__file__).name}: starting (importing JAX and softbody) ...", flush=True)
+
 import jax.numpy as jnp
 import numpy as np
 import optax
 
 from softbody import control as sc
+from softbody import progress
 from softbody.actuators import Muscle
 from softbody.io import check_overwrite, write_metrics
 from softbody.material import Material
@@ -85,7 +89,8 @@ def main(argv=None):
     check_overwrite(args.out / "metrics.json", args.force)
     start = time.perf_counter()
 
-    mesh, model, params = caterpillar()
+    with progress.task("meshing and building the caterpillar"):
+        mesh, model, params = caterpillar()
     distance = sc.ForwardDistance(model, axis=(1.0, 0.0, 0.0))
     grid = sc.ControlGrid(TRAIN_PERIODS * PERIOD, model.n_channels, N_KNOTS, period=PERIOD, upper=A_MAX)
     problem = sc.ControlProblem(model, params, distance, grid)
@@ -101,7 +106,9 @@ def main(argv=None):
     long_grid = sc.ControlGrid(EVAL_PERIODS * PERIOD, model.n_channels, N_KNOTS, period=PERIOD, upper=A_MAX)
     evaluation = sc.ControlProblem(model, params, distance, long_grid)
     runs, travelled, checks = {}, {}, {}
-    for name, theta in (("gradient", adam.theta), ("cmaes", cma.best_theta), ("initial", theta0)):
+    gaits = (("gradient", adam.theta), ("cmaes", cma.best_theta), ("initial", theta0))
+    for name, theta in progress.track(gaits, f"running each gait for {EVAL_PERIODS * PERIOD * DT:.1f} s",
+                                      note=lambda item: item[0]):
         traj = evaluation.simulate(jnp.asarray(theta))
         runs[name], travelled[name] = np.asarray(traj.x), float(distance.travelled(traj))
         checks[name] = sanity(traj)
@@ -162,7 +169,7 @@ def main(argv=None):
         "wall_time_s": time.perf_counter() - start,
     }
     write_metrics(args.out / "metrics.json", metrics, force=args.force)
-    print(f"wrote {args.out / 'metrics.json'} ({metrics['wall_time_s']:.0f} s)")
+    print(f"wrote {args.out / 'metrics.json'} ({metrics['wall_time_s']:.0f} s)", flush=True)
     return metrics
 
 

@@ -24,11 +24,15 @@ import argparse
 import time
 from pathlib import Path
 
+if __name__ == "__main__":  # the first line, before the imports of JAX and softbody (seconds)
+    print(f"{Path(__file__).name}: starting (importing JAX and softbody) ...", flush=True)
+
 import jax.numpy as jnp
 import numpy as np
 import optax
 
 from softbody import control as sc
+from softbody import progress
 from softbody.actuators import CavityPressure
 from softbody.io import check_overwrite, write_metrics
 from softbody.material import Material
@@ -56,14 +60,15 @@ def main(argv=None):
         checkpoint.unlink()
     start = time.perf_counter()
 
-    mesh = finger(length=LENGTH, size=0.008)
-    chamber = CavityPressure.from_regions(mesh, ["cavity:chamber"], min_pressure=0.0, max_pressure=P_MAX)
-    model, params = build(SoftBody(mesh, Material(E=2e5, nu=0.4, density=1100.0, alpha=10.0), fixed="fixed",
-                                   actuators=[chamber]),
-                          options=Options(dt=DT, tol=1e-6, max_iter=500))
-    tip = mesh.regions["tip"].vertices
-    weights = sc.centroid_weights(model, tip)
-    x_hidden, _ = solve_static(model, params, activation=jnp.asarray([P_HIDDEN]))
+    with progress.task("meshing the finger and finding the target (a static solve: compiles)"):
+        mesh = finger(length=LENGTH, size=0.008)
+        chamber = CavityPressure.from_regions(mesh, ["cavity:chamber"], min_pressure=0.0, max_pressure=P_MAX)
+        model, params = build(SoftBody(mesh, Material(E=2e5, nu=0.4, density=1100.0, alpha=10.0), fixed="fixed",
+                                       actuators=[chamber]),
+                              options=Options(dt=DT, tol=1e-6, max_iter=500))
+        tip = mesh.regions["tip"].vertices
+        weights = sc.centroid_weights(model, tip)
+        x_hidden, _ = solve_static(model, params, activation=jnp.asarray([P_HIDDEN]))
     target = weights @ np.asarray(x_hidden)[tip]
     print(f"finger: {mesh.n_vertices} vertices, {mesh.n_tets} tets; target tip position {np.round(target, 4)} m")
 
@@ -73,6 +78,7 @@ def main(argv=None):
     problem = sc.ControlProblem(model, params, loss, grid)
     result = sc.optimize_controls(problem, 1e4, optimizer=optax.adam(0.1), n_iter=args.iterations,
                                   checkpoint=checkpoint)
+    progress.say("simulating the optimised and the initial pressures")
     traj = problem.simulate(jnp.asarray(result.theta))
     tip_path = np.asarray(traj.x)[:, tip].transpose(0, 2, 1) @ weights  # (T + 1, 3)
     error = float(np.linalg.norm(tip_path[-1] - target))
@@ -129,7 +135,7 @@ def main(argv=None):
         "wall_time_s": time.perf_counter() - start,
     }
     write_metrics(args.out / "metrics.json", metrics, force=True)
-    print(f"wrote {args.out / 'metrics.json'} ({metrics['wall_time_s']:.0f} s)")
+    print(f"wrote {args.out / 'metrics.json'} ({metrics['wall_time_s']:.0f} s)", flush=True)
     return metrics
 
 

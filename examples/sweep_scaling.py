@@ -21,8 +21,12 @@ import statistics
 import sys
 from pathlib import Path
 
+if __name__ == "__main__":  # the first line, before the imports of JAX, softbody and Ray (seconds)
+    print(f"{Path(__file__).name}: starting (importing JAX and softbody) ...", flush=True)
+
 import numpy as np
 
+from softbody import progress
 from softbody.control import sweep as sw
 from softbody.io import check_overwrite, write_metrics
 
@@ -61,8 +65,11 @@ def main(argv=None):
         walls, splits = [], []
         for rep in range(args.repeats):
             out = args.out / f"{name.replace(' ', '_').replace(',', '')}.csv"
-            res = sw.run_sweep(sweep_beam.point, points, setup=sweep_beam.setup, metrics=["tip_dz", "iterations"],
-                               out=out, overwrite=True, plot=False, progress=False, **kwargs)
+            # the sweep's own progress line goes to stderr; this task says on stdout what runs
+            with progress.task(f"{name}: run {rep + 1}/{args.repeats} ({len(points)} points)", done=None):
+                res = sw.run_sweep(sweep_beam.point, points, setup=sweep_beam.setup,
+                                   metrics=["tip_dz", "iterations"], out=out, overwrite=True, plot=False,
+                                   progress=False, **kwargs)
             assert res.complete and res.failed == 0, res.rows
             walls.append(res.wall_s)
             splits.append(split_compile(res.rows))

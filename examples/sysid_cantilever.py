@@ -32,10 +32,14 @@ import argparse
 import time
 from pathlib import Path
 
+if __name__ == "__main__":  # the first line, before the imports of JAX and softbody (seconds)
+    print(f"{Path(__file__).name}: starting (importing JAX and softbody) ...", flush=True)
+
 import jax.numpy as jnp
 import numpy as np
 
 from softbody import control as sc
+from softbody import progress
 from softbody.io import check_overwrite, write_metrics
 from softbody.material import Material
 from softbody.meshing.grid import grid_box
@@ -59,15 +63,17 @@ def main(argv=None):
 
     mesh = grid_box((0.32, 0.08, 0.08), (8, 2, 2))
     options = Options(dt=0.01, tol=1e-9, max_iter=3000)
-    model, truth = build(SoftBody(mesh, Material(E=E_TRUE, nu=0.3, density=1000.0, alpha=ALPHA_TRUE), fixed="fixed"),
-                         options=options)
-    obs = sc.synthesize(model, truth, "zmax", N_STEPS, noise=NOISE, seed=0)
+    with progress.task("building the beam and synthesising the observation (compiles a rollout)"):
+        model, truth = build(SoftBody(mesh, Material(E=E_TRUE, nu=0.3, density=1000.0, alpha=ALPHA_TRUE),
+                                      fixed="fixed"), options=options)
+        obs = sc.synthesize(model, truth, "zmax", N_STEPS, noise=NOISE, seed=0)
     print(f"{len(obs.markers)} markers, {N_STEPS} frames, noise {obs.noise * 1e3:.3f} mm "
           f"({NOISE:.0%} of the peak displacement)")
 
     # Levenberg-Marquardt on (log E, log alpha).
     estimate = ("E", "alpha")
-    res = sc.identify(model, truth, obs, estimate, init={"E": E_START, "alpha": ALPHA_START}, n_iter=20)
+    with progress.task("Levenberg-Marquardt fit (compiles the Jacobian first)"):
+        res = sc.identify(model, truth, obs, estimate, init={"E": E_START, "alpha": ALPHA_START}, n_iter=20)
     e_hist = np.array([h["E"][0] for h in res.history])
     lm_err = np.abs(e_hist / E_TRUE - 1.0)
     e_err = float(lm_err[-1])
@@ -89,8 +95,9 @@ def main(argv=None):
     cma_start = time.perf_counter()
     # throw=False: a failed simulation costs NaN, which CMA-ES ranks last; no host callback,
     # so the compiled cost is kept between runs (as the LM fit's Jacobian program is).
-    cma = sc.cmaes(lambda z: problem.cost(z, throw=False), z0, sigma0=0.5, budget=args.cmaes_budget, seed=1,
-                   stop=lambda z, f: e_error(z) <= same and f <= same_cost)
+    with progress.task("CMA-ES on the same misfit (compiles the cost first)"):
+        cma = sc.cmaes(lambda z: problem.cost(z, throw=False), z0, sigma0=0.5, budget=args.cmaes_budget, seed=1,
+                       stop=lambda z, f: e_error(z) <= same and f <= same_cost)
     cma_time = time.perf_counter() - cma_start
     cma_err = np.abs(np.exp(cma.best_x_history[:, 0]) / E_TRUE - 1.0)
     reached = np.flatnonzero(cma_err <= same)
@@ -103,6 +110,7 @@ def main(argv=None):
           f"the LM cost + 1/2 after {cma_same_cost}")
 
     # Figures.
+    progress.say("drawing the figures (two more rollouts)")
     import matplotlib
 
     matplotlib.use("Agg")
@@ -165,7 +173,7 @@ def main(argv=None):
         "wall_time_s": time.perf_counter() - start,
     }
     write_metrics(args.out / "metrics.json", metrics, force=args.force)
-    print(f"wrote {args.out / 'metrics.json'} ({metrics['wall_time_s']:.0f} s)")
+    print(f"wrote {args.out / 'metrics.json'} ({metrics['wall_time_s']:.0f} s)", flush=True)
     return metrics
 
 

@@ -192,6 +192,8 @@ def add_arguments(parser):
 
 def run(args) -> int:
     """Run ``softbody advise``; returns the exit status (0 advice given, 2 bad input or none)."""
+    from softbody import progress
+
     try:
         if args.source is not None:
             path, rows = load_front(args.source, args.scene)
@@ -200,10 +202,13 @@ def run(args) -> int:
             grid = SMALL_FRONT
             print(f"measuring a small front on the {args.scene} scene ({grid['scene'].duration} s simulated)...",
                   flush=True)
-            rows, _ = measure_front(grid["scene"], grid, methods=("PD L-BFGS", "PD BDF2", "PD mesh"))
+            # each run says when it starts and ends; the task keeps a pipe from going silent
+            # for more than ~10 s in between (compiles)
+            with progress.task(f"advise: measuring the {args.scene} front", announce=False):
+                rows, _ = measure_front(grid["scene"], grid, methods=("PD L-BFGS", "PD BDF2", "PD mesh"))
         advice = advise(rows, args.tol)
     except AdviceError as err:
         print(f"softbody advise: {err}", file=sys.stderr)
         return 2
-    print(advice.explain())
+    print(advice.explain(), flush=True)
     return 0

@@ -23,6 +23,16 @@ from pathlib import Path
 
 import numpy as np
 
+#: linear solvers that factorise through a host callback: their programs are compiled again
+#: in every process (see :mod:`softbody.cache`)
+HOST_CALLBACK_SOLVERS = ("SparseLDL", "SparseCholesky")
+
+
+def _examples():
+    from softbody.meshing import EXAMPLES
+
+    return EXAMPLES
+
 
 class RunError(ValueError):
     """The command line asks for something that cannot run; the message says why and what to do."""
@@ -125,6 +135,7 @@ def simulate(args: argparse.Namespace) -> tuple[object, dict]:
         SimulationError: a step stopped at the iteration cap, became non-finite or inverted
             tets (nothing is written then); the message names the command's options to change.
     """
+    from softbody import progress
     from softbody._types import RESULTS
     from softbody.io import Result
     from softbody.material import Material
@@ -135,15 +146,25 @@ def simulate(args: argparse.Namespace) -> tuple[object, dict]:
     if args.steps < 1:
         raise RunError(f"--steps must be at least 1, got {args.steps}")
     start = time.perf_counter()
-    mesh = load_mesh(args.mesh, args.size)
+    with progress.task(f"meshing {args.mesh}" if args.mesh in _examples() else f"loading {args.mesh}"):
+        mesh = load_mesh(args.mesh, args.size)
     mesh_s = time.perf_counter() - start
     fixed = fixed_region(mesh, args.fixed)
     material = Material(E=args.E, nu=args.nu, density=args.density, alpha=args.alpha)
     options = Options(dt=args.dt, tol=args.tol, gravity=tuple(args.gravity))
-    model, params = build(SoftBody(mesh, material, fixed=fixed), options=options)
+    with progress.task(f"building the model ({mesh.n_vertices} vertices, {mesh.n_tets} tets)"):
+        model, params = build(SoftBody(mesh, material, fixed=fixed), options=options)
 
+    # The rollout is one compiled program (a lax.scan): it cannot report per step without a
+    # host callback, which would keep it out of the compilation cache; progress.compiling
+    # reports around it instead (a "still ..." line every ~10 s on a pipe).
+    solver = type(model.linear_solver).__name__
     tick = time.perf_counter()
-    traj = rollout(model, params, initial_state(model, params), n_steps=args.steps, throw=False)
+    with progress.compiling(f"compiling and simulating {args.steps} steps ({solver})",
+                            key=f"run/{args.mesh}/{mesh.n_vertices}/{mesh.n_tets}/{args.steps}/{args.dt:g}/{args.tol:g}",
+                            cached=solver not in HOST_CALLBACK_SOLVERS):
+        traj = rollout(model, params, initial_state(model, params), n_steps=args.steps, throw=False)
+        traj.x.block_until_ready()  # the wait belongs inside the report
     codes = np.asarray(traj.info.result)
     if np.any(codes != RESULTS.success):
         step = int(np.argmax(codes != RESULTS.success))
@@ -187,11 +208,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``softbody run``; returns the exit status (0 ok, 1 bad input or a failed simulation)."""
+    from softbody import progress
     from softbody.io import check_overwrite
     from softbody.meshing import MeshError
     from softbody.simulate import SimulationError
 
     out: Path = args.output
+    progress.say(f"softbody run {args.mesh}: {args.steps} steps of {args.dt:g} s -> {out}")
     try:
         if out.suffix != ".npz":
             raise RunError(f"-o {out}: result files end in .npz")
@@ -211,5 +234,5 @@ def run(args: argparse.Namespace) -> int:
     print(f"simulated {opts['steps']} steps ({opts['steps'] * opts['dt']:.3g} s) in "
           f"{t['simulate_with_compile']:.1f} s wall time, compilation included "
           f"(meshing/loading {t['mesh']:.1f} s)")
-    print(f"wrote {out}")
+    print(f"wrote {out}", flush=True)
     return 0

@@ -6,7 +6,10 @@ the command refuses before running anything.
 Each benchmark is a module ``softbody.bench.<name>`` (dashes become underscores) with
 ``run(out: pathlib.Path, quick: bool) -> dict``: it writes its charts into ``out`` and
 returns the figures, which are written to ``out/<name>.json`` together with the machine
-and package versions. Benchmarks measure; they never assert.
+and package versions. Benchmarks measure; they never assert. They report their cases and
+compiles through :mod:`softbody.progress` (a bar on a terminal, lines on a pipe); the
+driver wraps the whole run in a progress task, so a pipe hears from it at least every
+~10 s.
 """
 
 from __future__ import annotations
@@ -107,10 +110,15 @@ def run_benchmark(name: str, out: Path, quick: bool = False, force: bool = False
     """
     if name not in BENCHMARKS:
         raise ValueError(f"unknown benchmark {name!r}; choose one of {sorted(BENCHMARKS)}")
+    from softbody import progress
+
     path = check_output(name, out, force)
     path.parent.mkdir(parents=True, exist_ok=True)
-    module = importlib.import_module(f"softbody.bench.{name.replace('-', '_')}")
-    figures = module.run(path.parent, quick)
+    # The benchmark reports its own cases (softbody.progress); this task keeps a pipe from
+    # going silent for more than ~10 s whatever the benchmark does (a long compile, say).
+    with progress.task(f"bench {name}" + (" (quick)" if quick else "")):
+        module = importlib.import_module(f"softbody.bench.{name.replace('-', '_')}")
+        figures = module.run(path.parent, quick)
     figures = {"benchmark": name, "quick": quick, **figures, "environment": environment()}
     path.write_text(json.dumps(figures, indent=2, default=float))
     return figures
@@ -150,6 +158,6 @@ def run(args) -> int:
     before = {p: p.stat().st_mtime_ns for p in out.glob("*.png")}
     figures = run_benchmark(args.name, out, args.quick, args.force)
     charts = sorted(p for p in out.glob("*.png") if before.get(p) != p.stat().st_mtime_ns)
-    print(f"softbody bench {args.name}: done (all figures in the JSON)")
+    print(f"softbody bench {args.name}: done (all figures in the JSON)", flush=True)
     print(summary(figures, [path, *charts]))
     return 0

@@ -232,11 +232,19 @@ def run(out: Path, quick: bool) -> dict:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    rest = _rest(quick)
-    slides = [_slide(dt, 0.5, 0.3) for dt in ((0.01,) if quick else (0.01, 0.005, 0.0025))]
-    equal_cones = _slide(0.01, 0.3, 0.3)
-    stacks = [_stack(shift, quick) for shift in (0.0, 0.002)]
-    rigid = _rigid(quick)
+    from softbody import progress
+
+    with progress.task("contact-pairs: cube resting on a slab"):
+        rest = _rest(quick)
+    slide_dts = (0.01,) if quick else (0.01, 0.005, 0.0025)
+    slides = [_slide(dt, 0.5, 0.3) for dt in progress.track(slide_dts, "contact-pairs: block sliding to rest",
+                                                            note=lambda dt: f"dt = {dt:g} s")]
+    with progress.task("contact-pairs: block sliding, equal friction cones"):
+        equal_cones = _slide(0.01, 0.3, 0.3)
+    stacks = [_stack(shift, quick) for shift in progress.track((0.0, 0.002), "contact-pairs: stack of three boxes",
+                                                               note=lambda s: f"shift {s:g} m")]
+    with progress.task("contact-pairs: rigid boxes"):
+        rigid = _rigid(quick)
     iterations = np.concatenate([rest["iterations"], *[s["pairs_iterations"] for s in slides],
                                  *[s["iterations"] for s in stacks], rigid["rest"]["iterations"],
                                  rigid["stack"]["iterations"]])

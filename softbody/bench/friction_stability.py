@@ -200,7 +200,10 @@ def run(out: Path, quick: bool) -> dict:
     youngs = (YOUNG[0], YOUNG[-1]) if quick else YOUNG
     steps = (STEPS[0], STEPS[-1]) if quick else STEPS
     n_plain = 300 if quick else 1000
+    from softbody import progress
+
     cases, active = [], []
+    blocks = len(meshes) * len(steps)
     for mesh_name, mesh in meshes.items():
         mesh = _on_ground(mesh)
         extent = float(np.ptp(mesh.points, axis=0).max())
@@ -208,6 +211,9 @@ def run(out: Path, quick: bool) -> dict:
             PERTURBATION * extent * np.random.default_rng(0).standard_normal(mesh.points.shape)
         )
         for dt in steps:
+            progress.say(f"friction-stability: case {len(cases) // (len(youngs) * len(SPLITTINGS)) + 1}/{blocks}: "
+                         f"{mesh_name} ({mesh.n_vertices} vertices), dt = {dt:.4g} s, E in {list(youngs)}, "
+                         f"{len(SPLITTINGS)} splittings ({time.perf_counter() - start:.0f} s so far)")
             options = Options(dt=dt, tol=TOL, max_iter=2000, solver=LocalGlobal())
             scene = dict(options=options, obstacles=[Plane(mu_s=0.5, mu_k=0.4)])
             body = SoftBody(mesh, Material(E=youngs[0], nu=0.45))

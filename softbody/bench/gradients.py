@@ -181,6 +181,8 @@ def memory_table(horizons, adjoints, timeout: float, cap_mb: float | None = None
     horizon whose time, scaled linearly from the previous one, would exceed ``timeout`` is
     not started; either ends that adjoint's row with the reason.
     """
+    from softbody import progress
+
     cap_mb = _memory_cap_mb() if cap_mb is None else cap_mb
     rows = []
     for adjoint in adjoints:
@@ -194,6 +196,7 @@ def memory_table(horizons, adjoints, timeout: float, cap_mb: float | None = None
                         f"over the {timeout:.0f} s limit")})
                     break
             cmd = [sys.executable, "-m", "softbody.bench.gradients", adjoint, str(horizon)]
+            progress.say(f"gradients: memory table: {adjoint}, {horizon} steps, in a child process ...")
             why, peak, stdout, stderr = _watch(cmd, timeout, cap_mb)
             lines = [line for line in stdout.splitlines() if line.startswith("{")]
             if why is None and not lines:
@@ -202,6 +205,9 @@ def memory_table(horizons, adjoints, timeout: float, cap_mb: float | None = None
                    if why is not None else json.loads(lines[-1]))
             rows.append(row)
             print(json.dumps(row), file=sys.stderr, flush=True)  # progress of a long table
+            progress.say(f"gradients: memory table: {adjoint}, {horizon} steps: " + (
+                f"stopped ({why})" if why is not None else
+                f"{row.get('peak_rss_mb', float('nan')):.0f} MB peak, gradient {row.get('gradient_s', float('nan')):.2f} s"))
             if why is not None:
                 break  # longer horizons will not fare better
             previous = row
@@ -211,10 +217,15 @@ def memory_table(horizons, adjoints, timeout: float, cap_mb: float | None = None
 def run(out: Path, quick: bool) -> dict:
     repeats = 2 if quick else 3
     horizons = [50, 100] if quick else [50, 100, 500, 1000, 5000]
+    from softbody import progress
+
     rows = memory_table(horizons, ["implicit", "unrolled", "plain"], timeout=600 if quick else 1800)
-    implicit = backward_cost("implicit", repeats)
-    unrolled = backward_cost("unrolled", 1)  # ~12 s per frame: one timed run
-    errors = fd_errors()
+    with progress.task("gradients: backward cost, implicit adjoint"):
+        implicit = backward_cost("implicit", repeats)
+    with progress.task("gradients: backward cost, unrolled"):
+        unrolled = backward_cost("unrolled", 1)  # ~12 s per frame: one timed run
+    with progress.task("gradients: finite-difference check"):
+        errors = fd_errors()
     rss_1000 = next((r["peak_rss_mb"] for r in rows if r.get("adjoint") == "implicit"
                      and r.get("horizon") == 1000 and "peak_rss_mb" in r), None)
     figures = {

@@ -87,7 +87,9 @@ def run(out: Path, quick: bool) -> dict:
     sizes, repeats = (SIZES[:1], 3) if quick else (SIZES, 5)
     rng = np.random.default_rng(0)
     n_contacts, kkt_s, qr_s, differences = [], [], [], []
-    for N in sizes:
+    from softbody import progress
+
+    for N in progress.track(sizes, "impact-zone: cloth sizes", note=lambda N: f"{N}x{N}"):
         x, w, G, h, z, lam = contacts(N, rng)
         args = (x, w, G, h, z, lam, rng.normal(size=x.size))
         t_kkt, kkt = _median_time(backward_kkt, args, repeats)

@@ -369,32 +369,41 @@ def plan(quick: bool) -> dict:
 
 
 def _entry(method, knobs, ref: Reference, run, vertices) -> dict:
-    """Run ``run()`` and make its row; a run that raises is recorded with its error."""
+    """Run ``run()`` and make its row; a run that raises is recorded with its error.
+
+    Says which run starts (it compiles first: a ``still ...`` line every ~10 s on a pipe,
+    see :mod:`softbody.progress`) and, when it ends, its wall time, compilation and error.
+    """
+    from softbody import progress
+
+    shown = ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in knobs.items())
     try:
-        t, u, wall, compile_s, extra = run()
+        with progress.task(f"{method} {shown} ({vertices} vertices)", done=None):
+            t, u, wall, compile_s, extra = run()
     except Exception as err:  # a benchmark records failures instead of stopping
-        print(f"{method:16s} {knobs} FAILED: {type(err).__name__}: {err}", flush=True)
+        progress.say(f"{method:16s} {knobs} FAILED: {type(err).__name__}: {err}")
         return {"method": method, **knobs, "vertices": vertices, "wall_s": math.nan, "compile_s": math.nan,
                 "rel_error": math.inf, "diverged": True, "failed": f"{type(err).__name__}: {str(err)[:200]}"}
     bounded = _bounded(u, extra.pop("finite", True))
     error = ref.error(t, u) if bounded else math.inf
     row = {"method": method, **knobs, "vertices": vertices, "wall_s": wall, "compile_s": compile_s,
            "rel_error": error, "diverged": not bounded, **extra}
-    shown = ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in knobs.items())
-    print(f"{method:16s} {shown:40s} wall {wall:8.3f} s  compile {compile_s:6.1f} s  error "
-          f"{error:.3e}" + ("  DIVERGED" if not bounded else ""), flush=True)
+    progress.say(f"{method:16s} {shown:40s} wall {wall:8.3f} s  compile {compile_s:6.1f} s  error "
+                 f"{error:.3e}" + ("  DIVERGED" if not bounded else ""))
     return row
 
 
 def measure_front(scene: Cantilever, grid: dict, ref: Reference | None = None, methods=None) -> tuple[list, Reference]:
     """Run every method over its knobs; returns ``(rows, reference)``."""
+    from softbody import progress
     from softbody.simulate import BDF2
     from softbody.solvers import LocalGlobal
 
     if ref is None:
-        ref = reference(scene)
-        print(f"reference: Tsit5 rtol {ref.rtol:g} on {scene.mesh(scene.finest).n_vertices} vertices, "
-              f"{ref.wall_s:.1f} s", flush=True)
+        with progress.task(f"reference: Tsit5 on {scene.mesh(scene.finest).n_vertices} vertices", done=None):
+            ref = reference(scene)
+        progress.say(f"reference: Tsit5 rtol {ref.rtol:g} on {scene.mesh(scene.finest).n_vertices} vertices, "
+                     f"{ref.wall_s:.1f} s")
     methods = methods or ("PD L-BFGS", "PD LocalGlobal", "PD BDF2", "PD mesh", "Newton", "diffrax Kvaerno5",
                           "explicit")
     rows = []
@@ -512,7 +521,10 @@ def run(out: Path, quick: bool) -> dict:
     scene = grid["scene"]
     t_start = time.perf_counter()
     rows, ref = measure_front(scene, grid)
-    table = stability_map(grid["stability_divisions"], grid["stability_duration"], grid["stability_methods"])
+    from softbody import progress
+
+    with progress.task("pareto: stability map"):
+        table = stability_map(grid["stability_divisions"], grid["stability_duration"], grid["stability_methods"])
     print(format_stability(table), flush=True)
     _plot(out / "pareto.png", rows, scene)
     at_1pc = {}

@@ -23,6 +23,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+#: linear solvers whose programs hold a host callback (compiled again in every process)
+_HOST = ("SparseLDL", "SparseCholesky")
+
 DIFFPD = {"forward_s_per_frame": 1.65, "iterations_per_frame": 104, "loss": 14.8846, "backward_s_per_frame": 0.35}
 
 
@@ -85,30 +88,40 @@ def _split(model, params, state0, controls, forces):
 
 
 def run(out: Path, quick: bool) -> dict:
+    from softbody import progress
     from softbody.simulate import rollout
 
     repeats = 2 if quick else 5
-    model, params, state0, controls, forces, scene = load_scene(tol=1e-4)
+    with progress.task("pd-cantilever: loading and building the shared scene"):
+        model, params, state0, controls, forces, scene = load_scene(tol=1e-4)
     frames = controls.shape[0]
+    solver = type(model.linear_solver).__name__
     t0 = time.perf_counter()
-    traj = rollout(model, params, state0, controls=controls, forces=forces, throw=False)  # all_converged
-    jax.block_until_ready(traj.x)
-    first = time.perf_counter() - t0
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
+    # One compiled rollout: reported around, not per step (see softbody.progress).
+    with progress.compiling(f"pd-cantilever: compiling and running the {frames}-frame rollout ({solver})",
+                            key=f"bench/pd-cantilever/rollout/{solver}", cached=solver not in _HOST):
         traj = rollout(model, params, state0, controls=controls, forces=forces, throw=False)  # all_converged
         jax.block_until_ready(traj.x)
-        times.append(time.perf_counter() - t0)
+    first = time.perf_counter() - t0
+    times = []
+    with progress.task("pd-cantilever: timed rollouts", total=repeats) as bar:
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            traj = rollout(model, params, state0, controls=controls, forces=forces, throw=False)  # all_converged
+            jax.block_until_ready(traj.x)
+            times.append(time.perf_counter() - t0)
+            bar.advance(note=f"{times[-1] / frames:.3f} s per frame")
     per_frame = float(np.median(times)) / frames
     loss = float(loss_of(traj, scene))
     iterations = np.asarray(traj.info.iterations)
     evaluations = np.asarray(traj.info.evaluations)
 
-    ref_model, ref_params, ref_state, *_ = load_scene(tol=1e-9)
-    ref = rollout(ref_model, ref_params, ref_state, controls=controls, forces=forces)
-    ref_loss = float(loss_of(ref, scene))
-    split = _split(model, params, state0, controls, forces)
+    with progress.task("pd-cantilever: reference rollout at tolerance 1e-9 (compiles again)"):
+        ref_model, ref_params, ref_state, *_ = load_scene(tol=1e-9)
+        ref = rollout(ref_model, ref_params, ref_state, controls=controls, forces=forces)
+        ref_loss = float(loss_of(ref, scene))
+    with progress.task("pd-cantilever: timing the local step and the global solve"):
+        split = _split(model, params, state0, controls, forces)
 
     figures = {
         "forward_s_per_frame": per_frame,

@@ -60,7 +60,7 @@ def size_sweep(cells_list, steps: int, repeats: int, dt: float = 0.01, pcg_max_v
     """Rows ``{vertices, dofs, solver, s_per_simulated_s, iterations_per_step, compile_s}``."""
     import jax
 
-    from softbody import linsolve, simulate
+    from softbody import linsolve, progress, simulate
     from softbody.model import initial_state
 
     rows = []
@@ -86,8 +86,8 @@ def size_sweep(cells_list, steps: int, repeats: int, dt: float = 0.01, pcg_max_v
                    "iterations_per_step": float(np.mean(traj.info.iterations)),
                    "converged_fraction": float(np.mean(traj.info.converged)),
                    "compile_s": compile_s}
-            print(f"{mesh.n_vertices:6d} vertices {name:22s} {row['s_per_simulated_s']:9.2f} s per simulated s "
-                  f"({row['iterations_per_step']:.1f} it/step, compile {compile_s:.1f} s)", flush=True)
+            progress.say(f"scaling: {mesh.n_vertices:6d} vertices {name:22s} {row['s_per_simulated_s']:9.2f} s per "
+                         f"simulated s ({row['iterations_per_step']:.1f} it/step, compile {compile_s:.1f} s)")
             rows.append(row)
     return rows
 
@@ -98,7 +98,7 @@ def batch_sweep(cells, batches, steps: int, repeats: int, dt: float = 0.01) -> l
     import jax
     import jax.numpy as jnp
 
-    from softbody import linsolve, simulate
+    from softbody import linsolve, progress, simulate
     from softbody.model import initial_state
 
     mesh = _beam(cells)
@@ -123,8 +123,8 @@ def batch_sweep(cells, batches, steps: int, repeats: int, dt: float = 0.01) -> l
                      "per_scene_s_per_simulated_s": wall / (steps * dt) / b,
                      "iterations_per_step": float(np.mean(traj.info.iterations)),
                      "compile_s": compile_s})
-        print(f"batch {b:3d}: {rows[-1]['s_per_simulated_s']:8.2f} s per simulated s "
-              f"({rows[-1]['per_scene_s_per_simulated_s']:.3f} per scene, compile {compile_s:.1f} s)", flush=True)
+        progress.say(f"scaling: batch {b:3d}: {rows[-1]['s_per_simulated_s']:8.2f} s per simulated s "
+                     f"({rows[-1]['per_scene_s_per_simulated_s']:.3f} per scene, compile {compile_s:.1f} s)")
     for r in rows:
         r["throughput_gain"] = r["batch"] * rows[0]["wall_s"] / r["wall_s"]
     return rows

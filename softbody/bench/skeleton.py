@@ -119,21 +119,24 @@ def _timed(model, params, state0, n_steps: int):
 
 
 def run(out: Path, quick: bool) -> dict:
+    from softbody import progress
     from softbody.meshing import quadruped
 
     n_steps, rounds = (5, 2) if quick else (20, 5)
-    mesh = quadruped()
-    configs = [None, *JOINTS]
-    scenes = {k: scene(k, mesh) for k in configs}
+    with progress.task("skeleton: meshing the quadruped and building the scenes"):
+        mesh = quadruped()
+        configs = [None, *JOINTS]
+        scenes = {k: scene(k, mesh) for k in configs}
     rows = {}
-    for k, (model, params, state0) in scenes.items():
+    for k, (model, params, state0) in progress.track(scenes.items(), "skeleton: first run (compiles) per joint count",
+                                                     total=len(scenes), note=lambda item: f"{item[0]} joints"):
         first, traj = _timed(model, params, state0, n_steps)
         iterations = int(np.sum(traj.info.iterations))
         rows[k] = {"joints": k, "n_vertices": model.n_vertices, "n_tets": model.n_tets,
                    "bone_vertices": 0 if k is None else len(model.rig.bone),
                    "iterations_per_step": iterations / n_steps,
                    "converged": bool(np.all(traj.info.converged)), "first_run_s": first, "_times": []}
-    for _ in range(rounds):
+    for _ in progress.track(range(rounds), "skeleton: timed rounds", note=lambda r: f"round {r + 1}"):
         for k, (model, params, state0) in scenes.items():
             rows[k]["_times"].append(_timed(model, params, state0, n_steps)[0])
     base = np.asarray(rows[None]["_times"]) / (rows[None]["iterations_per_step"] * n_steps)
