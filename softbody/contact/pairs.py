@@ -51,8 +51,16 @@ among the rows on the part, and each iteration runs several Jacobi sweeps of the
 rigid part couple through its motion; on a 2 cm rigid box resting on a soft slab, 10
 sweeps took a median 518 iterations a step, 30 took 175, 100 took 96, 30 the fastest).
 
+**Several bodies.** ``Touch("a", "b", "c", ...)`` runs one broad phase over all the named
+surfaces (body groups: pairs within one body are never candidates), gives each surface
+vertex one row with the nearest triangle of another body, and keeps it at the full
+thickness where its body's surface is the finer of the two (the earlier named on a tie),
+else at half of it: for two bodies, the two passes above. Its cost grows with the
+surfaces' total size (256 cubes dropped onto each other: ``softbody bench many-bodies``).
+
 Limits of this version (refused by :func:`softbody.model.build` or by :class:`Touch`):
-two distinct bodies (no self-contact), vertex-triangle rows only (no edge-edge rows: a
+distinct bodies (no self-contact), one row per vertex (a vertex wedged between two other
+bodies is held out of the nearer one only), vertex-triangle rows only (no edge-edge rows: a
 sharp edge crossing another body's edge between vertices is not seen). **Tunnelling**:
 the row choice above stops a vertex at the first triangle its path crosses (a block thrown
 at 3 m/s onto a 1 cm slab at ``dt = 0.01`` s, 3 cm a step, stops on it; it passed through
@@ -291,7 +299,7 @@ class Touch(PairRows):
         capacity = (self.capacity * len(self.bodies) if self.capacity else
                     _CANDIDATES_PER_VERTEX * len(verts))
         found = broad_phase.candidates(x_start, x_end, verts, faces, margin, capacity, work=4 * capacity,
-                                       exclude_incident=False, groups=scene.groups, allowed=scene.allowed)
+                                       exclude_incident=False, groups=scene.rank, allowed=scene.allowed)
         local = np.zeros(x_end.shape[0], np.int32)
         local[verts] = np.arange(len(verts))
         row = jnp.asarray(local)[found.vertex]  # (C,) each candidate's vertex, among verts
@@ -348,7 +356,7 @@ class Touch(PairRows):
         scene = self._bound()
         capacity = self.capacity or _CROSSING_CANDIDATES_PER_VERTEX * len(scene.points)
         found = ccd.tunnelled(*jax.lax.stop_gradient((x_start, x_end)), scene.faces, capacity=capacity,
-                              edge_capacity=capacity, groups=scene.groups, allowed=scene.allowed)
+                              edge_capacity=capacity, groups=scene.rank, allowed=scene.allowed)
         return found.count, found.overflow
 
 
@@ -360,18 +368,14 @@ class _Bound:
         points: (P,) the surface vertices, body by body (one row each, in this order).
         faces: (T, 3) the surface triangles, body by body.
         rank: (n,) each scene vertex's body among them (0 the finest), ``len(bodies)`` off them.
-        groups, allowed: the broad phase's body groups (``rank``) and the pairs of distinct
-            bodies that may touch.
+        allowed: the pairs of distinct bodies (ranks) that may touch: with ``rank`` as the
+            groups, what the broad phase and the crossing check search.
     """
 
     points: np.ndarray
     faces: np.ndarray
     rank: np.ndarray
     allowed: tuple
-
-    @property
-    def groups(self) -> np.ndarray:
-        return self.rank
 
     @classmethod
     def of(cls, faces: list, n: int) -> _Bound:
