@@ -22,6 +22,11 @@ no top-level ``control`` package, so nothing collides with python-control.
   populations); Ray is imported only when a sweep starts (``pip install softbody[sweep]``).
 * :mod:`~softbody.control.optimize`: the shared optax loop with progress and
   checkpoint/resume (:func:`minimize`).
+* :mod:`~softbody.control.env`: reinforcement-learning environments in gymnax's pure style
+  over any scene (:class:`Env`: ``reset``/``step``, batched by ``vmap``; :class:`ActionMap`,
+  observations :class:`JointAngles`, :class:`Positions`, :class:`Concat`, rewards
+  :class:`Progress`, :class:`Height`, :class:`ActionPenalty`) and exact one-step Jacobians
+  by forward-mode implicit differentiation (:func:`step_jacobian`, :func:`contact_changes`).
 """
 
 from .baselines import CMAResult, cmaes
@@ -32,7 +37,9 @@ from .losses import (Effort, ForwardDistance, Loss, Scaled, Smoothness, Sum, Tar
 from .optimize import OptimizeResult, minimize
 from .policy import MLPPolicy, Observations, PolicyResult, policy_rollout, train_policy
 from .sysid import ESTIMABLE, Observation, SysIdProblem, SysIdResult, identify, synthesize
-from . import sweep
+from . import env, sweep
+from .env import (ActionMap, ActionPenalty, Concat, Env, EnvState, Height, JointAngles, Positions, Progress,
+                  ResetNoise, Reward, StepJacobian, Transition, contact_changes, step_jacobian)
 from .sweep import Pool as SweepPool, SweepError, SweepResult, population_evaluator, run_sweep
 from .trajopt import ControlGrid, ControlProblem, TrajOptResult, optimize_controls
 
@@ -46,5 +53,7 @@ __all__ = [
     "ESTIMABLE", "Observation", "SysIdProblem", "SysIdResult", "identify", "synthesize",
     "Design", "CoDesignProblem", "CoDesignResult", "codesign", "project_capped_simplex",
     "CMAResult", "cmaes",
+    "env", "Env", "EnvState", "ActionMap", "Transition", "Reward", "Progress", "Height", "ActionPenalty",
+    "JointAngles", "Positions", "Concat", "ResetNoise", "StepJacobian", "step_jacobian", "contact_changes",
     "sweep", "run_sweep", "SweepPool", "SweepError", "SweepResult", "population_evaluator",
 ]

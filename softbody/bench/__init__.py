@@ -47,6 +47,22 @@ def add_arguments(parser):
                         help="replace the results of an earlier run in --out")
 
 
+def median_seconds(fn, *args, repeats: int) -> float:
+    """The median wall time of ``fn(*args)`` over ``repeats`` calls after one untimed call
+    (which compiles a jitted ``fn``), each waited for (``jax.block_until_ready``)."""
+    import jax
+
+    jax.block_until_ready(fn(*args))
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - start)
+    times.sort()
+    middle = len(times) // 2
+    return times[middle] if len(times) % 2 else (times[middle - 1] + times[middle]) / 2
+
+
 def environment() -> dict:
     """Machine and package versions recorded beside every benchmark's figures."""
     import jax

@@ -31,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from softbody.bench import median_seconds
 from softbody.bench.pd_cantilever import DIFFPD, load_scene, loss_of
 
 
@@ -58,23 +59,13 @@ def _loss_fn(model, params, state0, controls, forces, scene):
     return loss
 
 
-def _median_time(f, *args, repeats):
-    jax.block_until_ready(f(*args))
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(f(*args))
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times))
-
-
 def backward_cost(adjoint: str, repeats: int) -> dict:
     """Forward and backward seconds per frame on the 25-frame scene at tolerance 1e-4."""
     model, params, state0, controls, forces, scene = _scene(adjoint)
     loss = _loss_fn(model, params, state0, controls, forces, scene)
     frames = controls.shape[0]
-    forward = _median_time(jax.jit(loss), controls, repeats=repeats)
-    both = _median_time(jax.jit(jax.value_and_grad(loss)), controls, repeats=repeats)
+    forward = median_seconds(jax.jit(loss), controls, repeats=repeats)
+    both = median_seconds(jax.jit(jax.value_and_grad(loss)), controls, repeats=repeats)
     return {"forward_s_per_frame": forward / frames, "backward_s_per_frame": max(both - forward, 0.0) / frames}
 
 

@@ -74,6 +74,7 @@ def _case(n: int) -> dict:
     import jax
     import jax.numpy as jnp
 
+    from softbody.bench import median_seconds
     from softbody.model import initial_state, prepare
     from softbody.simulate import rollout, step
 
@@ -108,13 +109,7 @@ def _case(n: int) -> dict:
         frame = jax.jit(lambda x0, x1: generator.frame(x1, generator.select(x0, x1, p), p).phi)
         out["row_penetration_m"] = float(max(0.0, -min(float(jnp.min(frame(traj.x[k - 1], traj.x[k])))
                                                        for k in range(1, STEPS + 1))))
-        jax.block_until_ready(select(traj.x[-2], traj.x[-1]))
-        picks = []
-        for _ in range(20):
-            start = time.perf_counter()
-            jax.block_until_ready(select(traj.x[-2], traj.x[-1]))
-            picks.append(time.perf_counter() - start)
-        out["select_s"] = float(np.median(picks))
+        out["select_s"] = median_seconds(select, traj.x[-2], traj.x[-1], repeats=20)
         out["broad_phase_share"] = out["select_s"] / step_s
     return out
 
