@@ -18,29 +18,23 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
-from softbody._types import RESULTS, State
 from softbody.actuators import Muscle
 from softbody.actuators.joints import JointServo, JointTorque
-from softbody.contact.obstacles import Plane
 from softbody.control import ControlError, Observations
 from softbody.control import env as E
+from softbody.meshing.grid import grid_box
+from test_skeleton import _box_region
+
+from softbody._types import RESULTS, State
+from softbody.contact.obstacles import Plane
 from softbody.gradients import central_difference, random_directions
 from softbody.material import Material
-from softbody.meshing import Region
-from softbody.meshing.grid import grid_box
 from softbody.model import Options, build, initial_state
 from softbody.scene import SoftBody
 from softbody.simulate import Trajectory, contact_forces
 from softbody.skeleton import Link, Revolute, Skeleton
 
 KEY = jax.random.PRNGKey(0)
-
-
-def _box_region(mesh, lo, hi) -> Region:
-    p = mesh.points
-    inside = np.all((p >= np.asarray(lo) - 1e-9) & (p <= np.asarray(hi) + 1e-9), axis=1)
-    return Region(np.flatnonzero(inside), np.flatnonzero(inside[mesh.tets].all(axis=1)))
 
 
 @pytest.fixture(scope="module")
