@@ -13,7 +13,7 @@ of parameter points and streams one row per finished point into a CSV table:
   then reuses it, and with it the programs JAX compiled for it, for every later point;
 * the cluster: by default a local Ray started on demand with ``workers`` CPUs and stopped
   at the end; ``address=`` joins a running cluster (``ray start --head`` on one node,
-  ``ray start --address=HEAD:6379`` on the others; see the README), and a Ray that the
+  ``ray start --address=HEAD:6379`` on the others; see docs/sweeps.md), and a Ray that the
   caller already initialised is used as it is;
 * the table (:func:`run_sweep`'s ``out``): columns ``index``, each parameter, each metric,
   ``seconds`` (the point's wall time on its worker), ``worker`` (the worker's slot),
