@@ -78,7 +78,7 @@ from softbody._types import RESULTS, Model, Params, State
 from softbody.elastic import deformation_gradient
 from softbody.gradients import ImplicitForward
 from softbody.model import initial_state, prepare
-from softbody.rotation import cold_start, det3
+from softbody.rotation import cold_start
 
 from .errors import ControlError
 from .losses import centroid_weights, region_vertices
@@ -547,10 +547,6 @@ class ResetNoise:
         return x, v
 
 
-def _count_inverted(model: Model, prep, x) -> Array:
-    return jnp.sum(det3(deformation_gradient(model, prep.dminv, x)) <= 0)
-
-
 def _transition(env: Env, params: Params, state: EnvState, action):
     """The pure step (no auto-reset): ``(next EnvState, reward, done, info)``. The one
     place a step is simulated (tests replace it to show that bad input never gets here)."""
@@ -560,9 +556,7 @@ def _transition(env: Env, params: Params, state: EnvState, action):
     safe_action = jnp.where(finite_action, action, 0.0)
     activation = env.action_map(safe_action)
     sim, info = simulate.step(model, prep, state.sim, activation)
-    finite = jnp.all(jnp.isfinite(sim.x)) & jnp.all(jnp.isfinite(sim.v)) & jnp.isfinite(info.residual)
-    result = RESULTS.of(finite=finite & finite_action, converged=info.converged, inverted=info.inverted,
-                        inverted0=state.inverted0, overflow=info.overflow, tunnelled=info.tunnelled)
+    result, _ = simulate.step_result(sim, info, state.inverted0, inputs_finite=finite_action)
     failed = (result == int(RESULTS.nonfinite)) | (result == int(RESULTS.inverted))
     sim = jax.tree.map(lambda new, old: jnp.where(failed, old, new), sim, state.sim)
     reward = env.reward(Transition(state=state.sim, action=action, activation=activation, next_state=sim,
@@ -728,7 +722,7 @@ class Env:
         sim = dataclasses.replace(sim, t=jnp.asarray(base.t, jnp.float64))
         prep = prepare(model, params)
         state = EnvState(sim=sim, start=sim, steps=jnp.zeros((), jnp.int32),
-                         inverted0=_count_inverted(model, prep, x))
+                         inverted0=simulate.inverted_tets(model, prep, x))
         return self.observation(sim, sim), state
 
     def reset(self, key, params: Params | None = None):

@@ -79,9 +79,32 @@ _FIXES = ("Lower the load or the activations, refine the mesh where it deforms m
           "drive it by volume with CavityVolume instead)")
 
 
-def _inverted(model: Model, prep: Prepared, x) -> Array:
-    """Number of tets with ``det F <= 0`` at positions ``x`` ``(n, 3)``."""
+def inverted_tets(model: Model, prep: Prepared, x) -> Array:
+    """Number of tets with ``det F <= 0`` at positions ``x`` ``(n, 3)`` (an int array)."""
     return jnp.sum(det3(deformation_gradient(model, prep.dminv, x)) <= 0)
+
+
+def step_result(new: State, info: StepInfo, inverted0, *, inputs_finite=True) -> tuple[Array, Array]:
+    """The result code of one step (:class:`~softbody._types.RESULTS`) and whether it ended finite.
+
+    A non-finite residual is a step that could not start (an overflowing load, say): the
+    positions it returns are finite but not a solution, so it counts as non-finite.
+
+    Arguments:
+        new: the state the step ended in; info: its :class:`StepInfo`.
+        inverted0: inverted tets at the rollout's start (:func:`inverted_tets`): a step
+            is ``inverted`` where it ends with more.
+        inputs_finite: false where the step's inputs were not finite (it is then
+            ``nonfinite`` whatever it computed).
+
+    Returns:
+        ``(code, finite)``: the int32 code and the bool ``finite``.
+    """
+    finite = (jnp.all(jnp.isfinite(new.x)) & jnp.all(jnp.isfinite(new.v)) & jnp.isfinite(info.residual)
+              & inputs_finite)
+    code = RESULTS.of(finite=finite, converged=info.converged, inverted=info.inverted, inverted0=inverted0,
+                      overflow=info.overflow, tunnelled=info.tunnelled)
+    return code, finite
 
 
 #: What a failure message can name, in the order of its branch: the iteration cap, the
@@ -484,17 +507,13 @@ def integrate(integrator: Integrator, model: Model, params: Params, state0: Stat
         one (see :func:`_first_failure`).
     """
     prep, memory0 = integrator.init(model, params, state0)
-    inverted0 = _inverted(model, prep, state0.x)
+    inverted0 = inverted_tets(model, prep, state0.x)
 
     def body(carry, inputs_k):
         state, memory, bad = carry
         a, f = choose(state, inputs_k)
         new, new_memory, info = integrator.step(model, prep, state, memory, _activation(model, a), f)
-        # A non-finite residual is a step that could not start (an overflowing load, say):
-        # the positions it returns are finite but not a solution.
-        finite = jnp.all(jnp.isfinite(new.x)) & jnp.all(jnp.isfinite(new.v)) & jnp.isfinite(info.residual)
-        result = RESULTS.of(finite=finite, converged=info.converged, inverted=info.inverted, inverted0=inverted0,
-                            overflow=info.overflow, tunnelled=info.tunnelled)
+        result, finite = step_result(new, info, inverted0)
         info = dataclasses.replace(info, result=jnp.where(bad, int(RESULTS.nonfinite), result).astype(jnp.int32))
         new, new_memory = jax.tree.map(lambda n, o: jnp.where(bad, o, n), (new, new_memory), (state, memory))
         return (new, new_memory, bad | ~finite), (new.x, new.v, info, a)
