@@ -45,34 +45,28 @@ def run(out: Path, quick: bool) -> dict:
                **({"SparseLDL": linsolve.SparseLDL()} if native_available() else {}),
                "PCG": linsolve.PCG(tol=1e-8)}
     rows = []
-    cells_list = CELLS[:2] if quick else CELLS
-    cases = progress.task("pd-scaling: mesh sizes x solvers", total=len(cells_list) * len(solvers), unit="cases")
-    with cases as bar:
-        for cells in cells_list:
-            mesh = grid_box((0.05 * cells[0] / cells[1], 0.05, 0.05), cells)
-            n = mesh.n_vertices
-            for name, solver in solvers.items():
-                bar.advance(0, note=f"now {n} vertices, {name}")
-                if name == "DenseCholesky" and n > 9000:
-                    rows.append({"vertices": n, "solver": name, "skipped": "dense factor needs > 5 GB"})
-                    bar.advance(note=f"{n} vertices, {name}: skipped")
-                    continue
-                if name == "PCG" and n > 9000 and quick:
-                    bar.advance(note=f"{n} vertices, {name}: skipped")
-                    continue
-                model, params = build(SoftBody(mesh, Material(E=1e6, nu=0.45), fixed="fixed"),
-                                      options=Options(dt=0.01, linear_solver=solver))
-                s0 = initial_state(model, params)
-                t0 = time.perf_counter()
-                prep = jax.block_until_ready(jax.jit(lambda p: prepare(model, p))(params))
-                setup = time.perf_counter() - t0
-                evaluate, _ = step_objective(model, prep, s0.x, s0.v, s0.rot, None, None)
-                x = s0.x + 1e-3
-                local = _time(lambda x: x + 1e-9 * evaluate(x, s0.rot)[1], x)
-                solve = _time(lambda x: x + 1e-9 * solver.solve(model.pattern, prep.factor, x), x)
-                rows.append({"vertices": n, "tets": mesh.n_tets, "solver": name, "local_ms": local,
-                             "solve_ms": solve, "iteration_ms": local + solve, "setup_s": setup})
-                bar.advance(note=f"{n} vertices, {name}: {local + solve:.2f} ms per iteration")
+    for cells in progress.track(CELLS[:2] if quick else CELLS, "pd-scaling: mesh sizes", unit="sizes",
+                                note=lambda cells: f"{cells} cells, every solver"):
+        mesh = grid_box((0.05 * cells[0] / cells[1], 0.05, 0.05), cells)
+        n = mesh.n_vertices
+        for name, solver in solvers.items():
+            if name == "DenseCholesky" and n > 9000:
+                rows.append({"vertices": n, "solver": name, "skipped": "dense factor needs > 5 GB"})
+                continue
+            if name == "PCG" and n > 9000 and quick:
+                continue
+            model, params = build(SoftBody(mesh, Material(E=1e6, nu=0.45), fixed="fixed"),
+                                  options=Options(dt=0.01, linear_solver=solver))
+            s0 = initial_state(model, params)
+            t0 = time.perf_counter()
+            prep = jax.block_until_ready(jax.jit(lambda p: prepare(model, p))(params))
+            setup = time.perf_counter() - t0
+            evaluate, _ = step_objective(model, prep, s0.x, s0.v, s0.rot, None, None)
+            x = s0.x + 1e-3
+            local = _time(lambda x: x + 1e-9 * evaluate(x, s0.rot)[1], x)
+            solve = _time(lambda x: x + 1e-9 * solver.solve(model.pattern, prep.factor, x), x)
+            rows.append({"vertices": n, "tets": mesh.n_tets, "solver": name, "local_ms": local,
+                         "solve_ms": solve, "iteration_ms": local + solve, "setup_s": setup})
     _plot(out / "pd-scaling.png", rows)
     best = {}
     for r in rows:

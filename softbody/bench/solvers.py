@@ -223,11 +223,21 @@ def run(out: Path, quick: bool) -> dict:
     residual = {name: [] for name in solvers}
     overhead = []
     rng = np.random.default_rng(0)
-    cases = progress.task("solvers: matrix sizes x solvers", total=len(sizes) * len(solvers), unit="cases")
-    with cases as bar:
-        for shape, n in zip(shapes, sizes):
-            _sizes_case(shape, n, solvers, rng, bar, factorize, per_solve, residual, overhead)
-            linsolve.clear_factor_cache()
+    for shape, n in progress.track(list(zip(shapes, sizes)), "solvers: matrix sizes", unit="sizes",
+                                   note=lambda case: f"n = {case[1]}, every solver"):
+        pattern, values = grid_system(shape)
+        b = jnp.asarray(rng.standard_normal((n, 3)))
+        for name, solver in solvers.items():
+            if name == "DenseCholesky" and 3 * 8.0 * n * n > DENSE_MEMORY_LIMIT:
+                figures = {"factorize_s": None, "per_solve_ms": None, "relative_residual": None}
+            else:
+                figures = _measure(solver, pattern, values, b)
+            factorize[name].append(figures["factorize_s"])
+            per_solve[name].append(figures["per_solve_ms"])
+            residual[name].append(figures["relative_residual"])
+            if "callback_overhead_ms" in figures:
+                overhead.append(figures["callback_overhead_ms"])
+        linsolve.clear_factor_cache()
     _plot(out / "solvers.png", sizes, per_solve, factorize)
     return {
         "sizes": sizes,
@@ -239,25 +249,6 @@ def run(out: Path, quick: bool) -> dict:
         "auto_choice": {str(n): type(linsolve.auto_solver(n)).__name__ for n in sizes},
         "openblas_num_threads": os.environ.get("OPENBLAS_NUM_THREADS"),
     }
-
-
-def _sizes_case(shape, n, solvers, rng, bar, factorize, per_solve, residual, overhead) -> None:
-    """Every solver on the grid matrix of ``shape`` (``n`` vertices): appends to the lists."""
-    pattern, values = grid_system(shape)
-    b = jnp.asarray(rng.standard_normal((n, 3)))
-    for name, solver in solvers.items():
-        bar.advance(0, note=f"now n = {n}, {name}")
-        if name == "DenseCholesky" and 3 * 8.0 * n * n > DENSE_MEMORY_LIMIT:
-            figures = {"factorize_s": None, "per_solve_ms": None, "relative_residual": None}
-        else:
-            figures = _measure(solver, pattern, values, b)
-        factorize[name].append(figures["factorize_s"])
-        per_solve[name].append(figures["per_solve_ms"])
-        residual[name].append(figures["relative_residual"])
-        if "callback_overhead_ms" in figures:
-            overhead.append(figures["callback_overhead_ms"])
-        solve = figures["per_solve_ms"]
-        bar.advance(note=f"n = {n}, {name}: " + ("skipped" if solve is None else f"{solve:.3g} ms per solve"))
 
 
 def _plot(path: Path, sizes, per_solve, factorize) -> None:
