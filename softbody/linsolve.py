@@ -352,6 +352,12 @@ class LinearSolver(abc.ABC):
     gradients with respect to ``b`` and to ``factor.data`` by implicit differentiation.
     """
 
+    @property
+    def host_callback(self) -> bool:
+        """Whether programs that use this solver hold a host callback: JAX does not keep
+        them in its persistent compilation cache, so they compile again in every process."""
+        return False
+
     @abc.abstractmethod
     def factorize(self, pattern: SparsityPattern, data) -> Factor:
         """Prepare repeated solves with one matrix (once per rollout, outside ``lax.scan``).
@@ -713,6 +719,10 @@ class _HostSolver(LinearSolver):
     second callback, which does receive the values, refactorises.
     """
 
+    @property
+    def host_callback(self) -> bool:
+        return True
+
     #: Whether the host solve may run on several threads at once (else it is locked).
     _thread_safe = False
 
@@ -1030,6 +1040,10 @@ class PerColumn(LinearSolver):
     """
 
     solver: LinearSolver
+
+    @property
+    def host_callback(self) -> bool:
+        return self.solver.host_callback
 
     def factorize(self, pattern: SparsityPattern, data) -> Factor:
         data = jnp.asarray(data)

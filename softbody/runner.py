@@ -23,11 +23,6 @@ from pathlib import Path
 
 import numpy as np
 
-#: linear solvers that factorise through a host callback: their programs are compiled again
-#: in every process (see :mod:`softbody.cache`)
-HOST_CALLBACK_SOLVERS = ("SparseLDL", "SparseCholesky")
-
-
 def _examples():
     from softbody.meshing import EXAMPLES
 
@@ -162,7 +157,7 @@ def simulate(args: argparse.Namespace) -> tuple[object, dict]:
     tick = time.perf_counter()
     with progress.compiling(f"compiling and simulating {args.steps} steps ({solver})",
                             key=f"run/{args.mesh}/{mesh.n_vertices}/{mesh.n_tets}/{args.steps}/{args.dt:g}/{args.tol:g}",
-                            cached=solver not in HOST_CALLBACK_SOLVERS):
+                            cached=not model.linear_solver.host_callback):
         traj = rollout(model, params, initial_state(model, params), n_steps=args.steps, throw=False)
         traj.x.block_until_ready()  # the wait belongs inside the report
     codes = np.asarray(traj.info.result)

@@ -23,9 +23,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-#: linear solvers whose programs hold a host callback (compiled again in every process)
-_HOST = ("SparseLDL", "SparseCholesky")
-
 DIFFPD = {"forward_s_per_frame": 1.65, "iterations_per_frame": 104, "loss": 14.8846, "backward_s_per_frame": 0.35}
 
 
@@ -99,7 +96,7 @@ def run(out: Path, quick: bool) -> dict:
     t0 = time.perf_counter()
     # One compiled rollout: reported around, not per step (see softbody.progress).
     with progress.compiling(f"pd-cantilever: compiling and running the {frames}-frame rollout ({solver})",
-                            key=f"bench/pd-cantilever/rollout/{solver}", cached=solver not in _HOST):
+                            key=f"bench/pd-cantilever/rollout/{solver}", cached=not model.linear_solver.host_callback):
         traj = rollout(model, params, state0, controls=controls, forces=forces, throw=False)  # all_converged
         jax.block_until_ready(traj.x)
     first = time.perf_counter() - t0
