@@ -396,11 +396,3 @@ def compiling(what: str, key: str, *, cached: bool | None = None):
     seconds = time.monotonic() - tick
     remember(key, seconds)
     say(f"{what}: done in {_span(seconds)}")
-
-
-def flush() -> None:
-    """Flush stdout (for plain prints between progress lines)."""
-    try:
-        sys.stdout.flush()
-    except (AttributeError, ValueError):
-        pass
