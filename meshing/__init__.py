@@ -17,7 +17,8 @@ Region names: ``"cavity:<name>"`` (wall triangles facing into the cavity),
 such as ``"fixed"`` and ``"tip"`` (vertices, and the surface triangles among them).
 Example robots: :data:`EXAMPLES` (``cantilever``, ``finger``, ``quadruped``,
 ``caterpillar``, ``cube``, ``ball``). Surfaces: :func:`mesh_file` (STL, OBJ, STEP).
-Structured boxes without gmsh: :func:`grid_box`.
+Structured boxes without gmsh: :func:`grid_box`. Flat sheets of triangles (cloth, thin
+shells; no tets): :mod:`softbody.meshing.sheet` (``rectangle``, ``disc``).
 """
 
 from .examples import EXAMPLES, ball, cantilever, caterpillar, cube, finger, quadruped
@@ -37,6 +38,7 @@ from .geometry import (
     mesh,
     select_regions,
 )
+from . import sheet
 from .grid import grid_box
 from .io import load, save
 from .mesh import MeshError, Region, TetMesh, boundary_faces, signed_volumes
@@ -68,5 +70,6 @@ __all__ = [
     "save", "load",
     "read_surface", "check_surface", "open_edges", "nonmanifold_edges", "self_intersections",
     "tetrahedralize", "mesh_file",
+    "sheet",
     "EXAMPLES", "cantilever", "finger", "quadruped", "caterpillar", "cube", "ball",
 ]

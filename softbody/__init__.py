@@ -11,6 +11,8 @@
 Scenes: :func:`build`, :class:`SoftBody`, :class:`RigidBody`, :func:`prepare`, :func:`initial_state`,
 :class:`Material`, :class:`Skeleton`, :class:`Fix` (vertices held in chosen components),
 :class:`Membrane` (a membrane term on triangles, e.g. fabric bonded to a body),
+:class:`Bending` (quadratic bending of a sheet), :func:`shell_body` (cloth and thin shells
+alone: a body of triangles, no tets),
 :class:`Options`, :class:`Model`, :class:`Params`, :class:`State`, :class:`SceneError`. A
 scene owns its physics: ``build([SoftBody(mesh, material, fixed=..., actuators=[...]), ...],
 skeleton=..., obstacles=[...])`` composes the step (the skeleton's reduced
@@ -61,7 +63,7 @@ _NAMES = {
     **dict.fromkeys(("Fix", "SoftBody"), "softbody.scene"),
     "Material": "softbody.material",
     "RigidBody": "softbody.rigid",
-    "Membrane": "softbody.shell",
+    **dict.fromkeys(("Bending", "Membrane", "shell_body"), "softbody.shell"),
     "Skeleton": "softbody.skeleton",
     "Contact": "softbody.contact",
     "Touch": "softbody.contact.pairs",
