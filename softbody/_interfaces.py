@@ -17,6 +17,8 @@ which methods it happens to have:
   :meth:`VertexTerm.blocks`), as ShapeOp's constraints add their triplets.
 * :class:`VolumeTerm`: new targets for the volume term of some tets
   (``volume_targets``), e.g. pneumatic cells.
+* :class:`VolumeElement`: a :class:`VertexTerm` that replaces the volume term of some tets
+  (an element technology that does not lock for nearly incompressible materials).
 
 An actuator is a term with named control channels, each with the range of values it
 accepts (:meth:`Term.channel_bounds`); every term has design parameters (``init_params``,
@@ -218,6 +220,24 @@ class VertexTerm(Term):
         (inertia and weight, e.g. a membrane's areal density), from the prepared data; or
         ``None`` (default) for a term without mass."""
         return None
+
+
+class VolumeElement(VertexTerm):
+    """A :class:`VertexTerm` that carries the volume energy of the tets ``tets`` (static
+    ``(m,)`` scene tet indices) in place of their own per-tet volume term: for those tets
+    :func:`softbody.model.prepare` keeps only the corotated weight ``w_s`` (their volume
+    weight is 0 in the tet energy and in the PD matrix) and hands the term the volume
+    weights ``w_v = 3 lambda`` ``(t,)`` of every tet (differentiable in ``E`` and ``nu``),
+    e.g. a nodally averaged volume that does not lock for ``nu -> 0.5``
+    (:class:`softbody.nodal.NodalVolume`). :class:`VolumeTerm` targets do not reach those
+    tets.
+    """
+
+    tets: np.ndarray
+
+    def prepare(self, model, params, dminv, volume, w_v=None):
+        """Per-rollout data; ``w_v`` ``(t,)``: the volume weights ``3 lambda`` of the scene's tets."""
+        raise NotImplementedError
 
 
 class VolumeTerm(Term):

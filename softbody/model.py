@@ -21,7 +21,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from softbody import linsolve, rotation
-from softbody._interfaces import Capabilities, ElementTerm, Integrator, PairRows, Rows, Term, VertexTerm
+from softbody._interfaces import (Capabilities, ElementTerm, Integrator, PairRows, Rows, Term, VertexTerm,
+                                  VolumeElement)
 from softbody.rigid import RigidBody
 from softbody.scene import SoftBody, assemble
 from softbody._types import Model, Options, Params, Prepared, SceneError, State, scene_features
@@ -272,6 +273,10 @@ def build(
             raise SceneError(f"actuators[{i}] ({type(term).__name__}) acts on a body's elements: give it to that "
                              "body, SoftBody(mesh, material, actuators=[...])")
     terms = [term.bind(rig) for term in (*scene.terms, *actuators, *terms)]
+    covered = np.concatenate([np.asarray(t.tets).ravel() for t in terms if isinstance(t, VolumeElement)] or [[]])
+    if len(np.unique(covered)) != len(covered):
+        raise SceneError("two volume elements (e.g. NodalVolume) cover the same tets; give each tet's volume to one "
+                         "of them")
     channels = [c for term in terms for c in term.channel_names]
     if len(set(channels)) != len(channels):
         raise SceneError(f"actuator channel names must be unique, got {channels}")
@@ -367,6 +372,10 @@ def prepare(model: Model, params: Params, *, static: bool = False, dt: float | N
     dminv, volume = rest_geometry(model, params.morph)
     mat = jnp.asarray(model.tet_material)
     w_s, w_v = pd_weights(params.E[mat], params.nu[mat])
+    w_v_tets = w_v  # a VolumeElement carries the volume energy of its tets instead
+    for term in model.terms:
+        if isinstance(term, VolumeElement):
+            w_v = w_v.at[jnp.asarray(term.tets)].set(0.0)
     w_b = params.beta[mat] * w_s
     tets = jnp.asarray(model.mesh.tets)
     quarter = (params.density[mat] * volume / 4.0)[:, None].repeat(4, axis=1)
@@ -386,7 +395,8 @@ def prepare(model: Model, params: Params, *, static: bool = False, dt: float | N
     else:
         inertia, weight = Dynamics(h), w_s + model.step.volume_weight * w_v + w_b / h
     local = local_matrices(dminv, volume * weight)  # (t, 4, 4)
-    term_prep = tuple(term.prepare(model, p, dminv, volume) for term, p in zip(model.terms, params.actuators))
+    term_prep = tuple(term.prepare(model, p, dminv, volume, w_v_tets) if isinstance(term, VolumeElement)
+                      else term.prepare(model, p, dminv, volume) for term, p in zip(model.terms, params.actuators))
     added = [(term.stencil(), term.mass(tp)) for term, tp in zip(model.terms, term_prep) if isinstance(term, VertexTerm)]
     added = [(jnp.asarray(s), m) for s, m in added if m is not None]
     if added:  # terms with mass of their own (a membrane's areal density)
