@@ -537,7 +537,9 @@ class RigidParts(NamedTuple):
         respond: ``aux -> ((X_new, force (n, 3)) -> X_new)``: for an iteration's ``aux``
             (as ``place`` gave it), the iterate moved by its coordinates' response to the
             extra forces ``force`` on the vertices: ``force / P`` on the vertices that move alone, the
-            linearised rigid motion ``B K^-1 B^T force`` on a rigid part.
+            linearised rigid motion ``B K^-1 B^T force`` on a rigid part; it may also relax
+            the coordinates' own extra rows (a rigid part's obstacle forces), whose change the
+            contact iteration counts in its residual.
         sweeps: how many Jacobi updates of the pair rows' forces each iteration runs
             (static): rows on one rigid part couple through its motion.
     """

@@ -1,6 +1,8 @@
 """Bodies touching bodies (softbody.contact.pairs.Touch): a soft block resting on and sliding over a
 soft slab held at its base, their gradients against central differences, and the refusals."""
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -13,7 +15,10 @@ from softbody.contact import Contact
 from softbody.contact import impact_zone
 from softbody.gradients import ImplicitForward
 from softbody.material import Material
+from softbody.meshing import self_intersections
+from softbody.meshing.geometry import Box, OnPlane, mesh
 from softbody.meshing.grid import grid_box
+from softbody.meshing.mesh import boundary_faces
 from softbody.model import Options, SceneError, build, initial_state, prepare
 from softbody.contact.pairs import Touch, every_pair
 from softbody.rigid import RigidBody
@@ -180,7 +185,8 @@ def test_one_touch_among_three_bodies_holds_the_stack_as_the_pairs_do():
         x[name] = np.asarray(rollout(model, params, initial_state(model), n_steps=8).x)  # throws unless converged
         if name == "one":
             surfaces = sum(len(np.unique(model.mesh.regions[b].faces)) for b in ("slab", "box", "top"))
-            assert model.rows[0].size == surfaces
+            # one vertex row per surface vertex, one edge row per surface edge of the finer bodies
+            assert model.rows[0].size == surfaces + len(model.rows[0]._bound().edge_rows)
     np.testing.assert_allclose(x["one"], x["pairs"], rtol=0, atol=1e-9)
     assert x["one"][-1, N_SLAB:, 2].min() > 0.01  # above the slab's top
 
@@ -192,6 +198,8 @@ def test_touch_among_bodies_refuses_before_compiling():
         Touch("block")
     with pytest.raises(SceneError, match="names one body twice"):
         Touch("block", "slab", "block")
+    with pytest.raises(SceneError, match="self_contact is True, False or a tuple of the named bodies"):
+        Touch("block", "slab", self_contact=("lid",))
     with pytest.raises(SceneError, match="'lid', which is not in the scene"):
         build([slab, block], rows=[Touch("block", "slab", "lid")])
     assert Touch("block", "slab", "lid").bodies == ("block", "slab", "lid")
@@ -320,6 +328,57 @@ def test_stack_of_three_rigid_boxes_stays_for_two_seconds():
     for i in range(3):
         start, end = model.body(f"b{i}").vertices
         assert np.abs(x[:, start:end] - x[0, start:end]).max() < 1e-3
+
+
+def test_crossed_edges_hold_a_box_on_a_ridge():
+    """A rigid 2 cm box turned 45 degrees about y, dropped onto a held cube turned 45 degrees
+    about x: only their edges meet, crossed at right angles, no vertex over a face. The
+    edge-edge rows hold it, every step converged, its lowest point at half the thickness
+    above the ridge; without them the edges pass through each other, and the step says so
+    (``RESULTS.tunnelled``)."""
+    c = np.cos(np.pi / 4)
+    about_x = np.array([[1, 0, 0], [0, c, -c], [0, c, c]])
+    about_y = np.array([[c, 0, c], [0, 1, 0], [-c, 0, c]])
+    cube = grid_box((0.02,) * 3, (1,) * 3, origin=(-0.01, -0.01, -0.01))
+    ridge = SoftBody(dataclasses.replace(cube, points=cube.points @ about_x.T), Material(E=1e6),
+                     fixed=lambda p: np.ones(len(p), bool), name="ridge")
+    top = 0.01 * np.sqrt(2)
+    upper = RigidBody(box((0.02, 0.02, 0.02), about_y, centre=(0.0, 0.0, 2 * top + THICKNESS + 1e-3)),
+                      density=500.0, name="upper")
+    for edges, n_steps in ((True, 20), (False, 8)):
+        model, params = build([ridge, upper], rows=[Touch("upper", "ridge", mu_s=0.5, thickness=THICKNESS,
+                                                          edges=edges)],
+                              options=Options(dt=DT, tol=1e-8, max_iter=3000))
+        traj = rollout(model, params, initial_state(model), n_steps=n_steps, throw=False)
+        start, end = model.body("upper").vertices
+        lowest = np.asarray(traj.x)[:, start:end, 2].min(axis=1) - top
+        result = np.asarray(traj.info.result)
+        if edges:
+            assert np.all(result == int(RESULTS.success)) and np.all(np.asarray(traj.info.converged))
+            np.testing.assert_allclose(lowest[5:], 0.5 * THICKNESS, rtol=1e-3)
+        else:
+            assert int(RESULTS.tunnelled) in result.tolist() and lowest.min() < 0
+
+
+def test_self_contact_holds_a_fork_closing_on_itself():
+    """A soft fork (two 1 cm arms 5 mm apart, joined and held at x = 0, the lower one on the
+    ground) whose upper arm sags under gravity onto the lower one: with self-contact its
+    surface never intersects itself (the meshing module's test) and every step converges;
+    without it the arm passes into the other."""
+    body = Box((0.06, 0.02, 0.025), center=(0.03, 0.0, 0.0135)) - Box((0.06, 0.03, 0.005),
+                                                                          center=(0.04, 0.0, 0.0135))
+    fork = mesh(body, size=0.006, select={"fixed": OnPlane("x", 0.0)})
+    faces = boundary_faces(fork.tets)
+    for contact in (True, False):
+        rows = [Touch("fork", self_contact=True, mu_s=0.3, thickness=THICKNESS)] if contact else []
+        model, params = build([SoftBody(fork, Material(E=5e4, nu=0.3, density=1000.0), fixed="fixed", name="fork")],
+                              obstacles=[Plane(mu_s=0.3)], rows=rows, options=Options(dt=DT, tol=1e-6, max_iter=3000))
+        traj = rollout(model, params, initial_state(model), n_steps=12, throw=contact)
+        crossings = [len(self_intersections(x, faces)) for x in np.asarray(traj.x)]
+        if contact:
+            assert max(crossings) == 0 and np.all(np.asarray(traj.info.converged))
+        else:
+            assert max(crossings) > 0
 
 
 def test_refusals_before_compiling():

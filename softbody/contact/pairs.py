@@ -43,6 +43,33 @@ for the step). The candidates come from a broad phase over the step's swept boxe
 fixed capacity; a step that overflows it ends with ``RESULTS.overflow``, never with
 contacts silently lost.
 
+**Edge-edge rows.** Two sharp edges crossing each other between their vertices (a box
+standing across the edge of another, two cubes set off diagonally on each other) are
+seen by no vertex-triangle row. Each surface edge of the finer bodies is paired with the
+edge of a coarser body nearest to it at the step's predicted end whose closest points lie
+inside both edges at the step's start and at its predicted end (nearer an end, the vertex
+rows hold the contact) and that is not nearly parallel to it (squared sine of their angle
+above ``_EDGE_PARALLEL``), kept where within reach as for vertex rows. The row's normal is the edges' common normal
+``cross(b - a, d - c)``, on the side the edge lies at the step's start; its gap, the
+distance of the two lines along it less half the thickness::
+
+    phi = n . ((a + s (b - a)) - (c + t (d - c))) - thickness / 2
+
+with the closest points' parameters ``s, t`` fixed for the step (the gap does not depend
+on them: ``n`` is normal to both edges); its weights ``(1 - s, s, t - 1, -t)``. At half the
+thickness the rows stay idle in flat contact (the faces rest a full thickness apart) and
+hold where only edges meet; ``Touch(..., edges=False)`` leaves them out.
+
+**Self-contact.** ``Touch("fork", self_contact=True)`` keeps a body's surface out of
+itself: its vertices meet its own triangles as another body's (half the thickness), with
+three rules that keep a surface from meeting its own neighbourhood: a vertex never meets a
+triangle nearer than half a mean surface edge at rest (``_SELF_EXCLUSION``; its own
+triangles never), only one it lies in front of at the step's start (not the far wall of
+its own body behind it) and only one it lies over at the predicted end (its projection
+inside the triangle, so the coplanar triangles of its own face never count). The
+tunnelling check searches the surface against itself too. Limits: no edge-edge rows within
+a body; two folds of one surface at rest nearer than the exclusion distance never meet.
+
 **Rigid bodies.** Either body may be a :class:`~softbody.rigid.RigidBody` (or a soft body
 with bones): its vertices move with its coordinates, so a row's force on them enters the
 reduced coordinates' sweep, its compliance there is the part's Delassus diagonal shared
@@ -50,6 +77,10 @@ among the rows on the part, and each iteration runs several Jacobi sweeps of the
 (:attr:`softbody.skeleton.Reduced.pair_sweeps`), the part responding to each (rows on one
 rigid part couple through its motion; on a 2 cm rigid box resting on a soft slab, 10
 sweeps took a median 518 iterations a step, 30 took 175, 100 took 96, 30 the fastest).
+After each sweep the part's obstacle forces (its skin's) take one update too, so that a
+rigid box on the ground under a soft body relaxes both sets of rows together (a 1 cm soft
+cube resting on a 2 cm rigid cube on the ground: 50-58 iterations a step, 80-115 with the
+skin's forces held during the sweeps).
 
 **Several bodies.** ``Touch("a", "b", "c", ...)`` runs one broad phase over all the named
 surfaces (body groups: pairs within one body are never candidates), gives each surface
@@ -59,18 +90,18 @@ else at half of it: for two bodies, the two passes above. Its cost grows with th
 surfaces' total size (256 cubes dropped onto each other: ``softbody bench many-bodies``).
 
 Limits of this version (refused by :func:`softbody.model.build` or by :class:`Touch`):
-distinct bodies (no self-contact), one row per vertex (a vertex wedged between two other
-bodies is held out of the nearer one only), vertex-triangle rows only (no edge-edge rows: a
-sharp edge crossing another body's edge between vertices is not seen). **Tunnelling**:
+one row per vertex and per edge (a vertex wedged
+between two other bodies is held out of the nearer one only). **Tunnelling**:
 the row choice above stops a vertex at the first triangle its path crosses (a block thrown
 at 3 m/s onto a 1 cm slab at ``dt = 0.01`` s, 3 cm a step, stops on it; it passed through
 before), and after each step a continuous collision check of the step's straight-line
 motion (:meth:`Touch.crossed`, :mod:`softbody.contact.ccd`) counts the vertex-triangle
 and edge-edge pairs of the two surfaces that met during it: a step where one did (edges
 crossing between vertices, a search that overflowed) ends with ``RESULTS.tunnelled``,
-never silently. The first step of a soft block set on a
-rigid box that rests on an obstacle takes about 10000 iterations (the box's obstacle rows
-and its pair rows are solved by separate sweeps). A light rigid body hitting a finer
+never silently. Impacts on or of rigid bodies with friction converge slowly: a 1 cm soft
+cube dropped 5 mm onto a 2 cm rigid cube on the ground, or a rigid cube onto a soft one,
+stops at the iteration cap (3000) in its impact steps (it converges in 1290 without
+friction). A light rigid body hitting a finer
 surface fast needs a larger ``capacity`` than the default: a 2 cm box dropped from 2 cm
 onto the slab overflows it at the impact (``RESULTS.overflow``); with ``capacity=4096`` every
 step converges and the box comes to rest.
@@ -95,6 +126,18 @@ __all__ = ["Touch", "every_pair"]
 _CANDIDATES_PER_VERTEX = 64
 #: the tunnelling check's candidates per surface vertex (see Touch.crossed)
 _CROSSING_CANDIDATES_PER_VERTEX = 4
+#: edge rows need their closest points this far inside both edges (fraction of each edge):
+#: nearer an end, the vertex rows hold the contact
+_EDGE_END = 1e-3
+#: edge rows need edges at an angle whose squared sine exceeds this (about 1.8 degrees):
+#: nearly parallel edges have no well-defined common normal
+_EDGE_PARALLEL = 1e-3
+#: self-contact: a body's vertex never meets its own triangles nearer than this many mean
+#: surface edges at rest
+_SELF_EXCLUSION = 0.5
+#: self-contact: a vertex meets its own body's triangle only where its projection lies
+#: inside it (barycentric coordinates above minus this)
+_SELF_OVER = 1e-6
 
 
 def _closest(p, a, b, c):
@@ -142,6 +185,22 @@ def _crossing(p0, p1, tri0, tri1):
     return jnp.where(through & inside, jnp.minimum(s, 1.0 - 1e-12), 1.0)
 
 
+def _edge_closest(a, b, c, d):
+    """The closest points of the lines through the edges ``(a, b)`` and ``(c, d)`` (each
+    ``(..., 3)``): their parameters ``st`` ``(..., 2)`` along each edge (0 at ``a``, ``c``),
+    the distance of the segments' points at those parameters clamped to ``[0, 1]``
+    ``(...)``, and the squared sine of the edges' angle ``(...)`` (0: parallel)."""
+    d1, d2, w = b - a, d - c, a - c
+    aa, ee, bb = jnp.sum(d1 * d1, -1), jnp.sum(d2 * d2, -1), jnp.sum(d1 * d2, -1)
+    cc, ff = jnp.sum(d1 * w, -1), jnp.sum(d2 * w, -1)
+    den = aa * ee - bb**2
+    sin2 = den / jnp.where(aa * ee > 0, aa * ee, 1.0)
+    safe = jnp.where(den > 0, den, 1.0)
+    s, t = (bb * ff - cc * ee) / safe, (aa * ff - bb * cc) / safe
+    gap = w + jnp.clip(s, 0, 1)[..., None] * d1 - jnp.clip(t, 0, 1)[..., None] * d2
+    return jnp.stack([s, t], -1), jnp.linalg.norm(gap, axis=-1), sin2
+
+
 def _normal(a, b, c):
     """The unit normals ``(..., 3)`` of the triangles ``(a, b, c)`` (right-hand rule)."""
     normal = jnp.cross(b - a, c - a)
@@ -175,44 +234,66 @@ class Touch(PairRows):
     module docstring: for two bodies these are its two passes).
 
     Arguments:
-        bodies: two or more distinct body names (``SoftBody(..., name=...)``).
+        bodies: two or more distinct body names (``SoftBody(..., name=...)``), or one with
+            ``self_contact=True``.
         mu_s: static friction coefficient (>= 0).
         mu_k: kinetic friction coefficient (``0 <= mu_k <= mu_s``; default ``mu_s``).
         restitution: coefficient of restitution in [0, 1] (0: the bodies stay together
             after an impact).
         thickness: the contact distance, m (> 0): a vertex rests this far above the
             other surface.
+        self_contact: ``True`` (every named body), or a tuple of the named bodies, that
+            also touch themselves (a fork closing on itself, a tube squashed until its inner
+            walls meet): their vertices meet their own triangles too, away from their
+            neighbours (see the module docstring). ``Touch("tube", self_contact=True)``
+            names one body.
+        edges: edge-edge rows (default) besides the vertex-triangle rows: each surface
+            edge of a finer body against the nearest crossing edge of a coarser one (see the
+            module docstring).
         capacity: the most candidate (vertex, triangle) pairs the broad phase
             (:func:`softbody.contact.broad_phase.candidates`) holds per step for each body's
             vertices (static; the search holds ``capacity * len(bodies)``; default 64 per
-            surface vertex; the box tests' budget is 4 times it). A step that finds more ends
+            surface vertex; the box tests' budget is 4 times it; the edge rows' search holds
+            as many (edge, edge) pairs per surface edge as this holds per surface vertex). A
+            step that finds more ends
             with the result code ``RESULTS.overflow`` (a rollout raises, naming this fix).
 
     The friction coefficients, restitution and thickness are the generator's parameters
     (``params.rows[i]``, a dict with those keys): differentiable.
 
     Raises:
-        SceneError: fewer than two names, a name that is not a string, a body named twice,
-            bad coefficients.
+        SceneError: fewer than two names (one without self-contact), a name that is not a
+            string, a body named twice, a self-contact body not among the names, bad
+            coefficients.
     """
 
     def __init__(self, *bodies: str, mu_s: float = 0.5, mu_k: float | None = None, restitution: float = 0.0,
-                 thickness: float = 1e-3, capacity: int | None = None):
+                 thickness: float = 1e-3, capacity: int | None = None, edges: bool = True,
+                 self_contact: bool | tuple = False):
         for name in bodies:
             if not isinstance(name, str) or not name:
                 raise SceneError(f"Touch takes body names (strings), got {name!r}")
-        if len(bodies) < 2:
-            raise SceneError(f"Touch takes two or more body names, got {list(bodies)}: contact within a body "
-                             "(self-contact) is not supported yet")
         if len(set(bodies)) != len(bodies):
-            raise SceneError(f"Touch{tuple(bodies)} names one body twice: contact within a body "
-                             "(self-contact) is not supported yet; name distinct bodies")
+            raise SceneError(f"Touch{tuple(bodies)} names one body twice: for contact within a body "
+                             "(self-contact) name it once with self_contact=True")
+        if isinstance(self_contact, bool):
+            selves = tuple(bodies) if self_contact else ()
+        elif isinstance(self_contact, (tuple, list)) and all(name in bodies for name in self_contact):
+            selves = tuple(self_contact)
+        else:
+            raise SceneError(f"Touch.self_contact is True, False or a tuple of the named bodies {list(bodies)}, got "
+                             f"{self_contact!r}")
+        if len(bodies) < 1 or (len(bodies) < 2 and not selves):
+            raise SceneError(f"Touch takes two or more body names, got {list(bodies)}; for contact within one body "
+                             "(self-contact) pass self_contact=True")
         if capacity is not None and (int(capacity) != capacity or capacity < 1):
             raise SceneError(f"Touch.capacity must be a whole number of candidate pairs >= 1 or None, got "
                              f"{capacity!r}")
         self.bodies = tuple(bodies)
         self.mu_s, self.mu_k = mu_s, mu_s if mu_k is None else mu_k
         self.restitution, self.thickness, self.capacity = restitution, thickness, capacity
+        self.edges = bool(edges)
+        self.self_contact = selves
         # bound to a scene by bind(): the surface vertices of the bodies, finer surfaces
         # first (_Bound)
         self._scene = None
@@ -221,7 +302,8 @@ class Touch(PairRows):
     def __repr__(self):
         names = ", ".join(repr(b) for b in self.bodies)
         return (f"Touch({names}, mu_s={self.mu_s}, mu_k={self.mu_k}, restitution={self.restitution}, "
-                f"thickness={self.thickness}, capacity={self.capacity})")
+                f"thickness={self.thickness}, capacity={self.capacity}, edges={self.edges}, "
+                f"self_contact={self.self_contact})")
 
     @property
     def first(self) -> str:
@@ -230,8 +312,8 @@ class Touch(PairRows):
 
     @property
     def second(self) -> str:
-        """The second body's name."""
-        return self.bodies[1]
+        """The second body's name (the first's for a body touching itself alone)."""
+        return self.bodies[1] if len(self.bodies) > 1 else self.bodies[0]
 
     def init_params(self):
         return {"mu_s": jnp.asarray(float(self.mu_s)), "mu_k": jnp.asarray(float(self.mu_k)),
@@ -266,12 +348,14 @@ class Touch(PairRows):
                    for f in faces]
         order = sorted(range(len(faces)), key=lambda i: (spacing[i], i))  # finer surfaces first
         bound = copy.copy(self)
-        bound._scene = _Bound.of([faces[i] for i in order], mesh.n_vertices)
+        selves = [rank for rank, i in enumerate(order) if self.bodies[i] in self.self_contact]
+        bound._scene = _Bound.of([faces[i] for i in order], mesh.n_vertices, self.edges, selves,
+                                 mesh.points, [_SELF_EXCLUSION * spacing[i] for i in order])
         return bound
 
     @property
     def size(self) -> int:
-        return 0 if self._scene is None else len(self._scene.points)
+        return 0 if self._scene is None else len(self._scene.points) + len(self._scene.edge_rows)
 
     def vertices(self):
         """The surfaces' vertices, ``(k,)`` ints (see :meth:`PairRows.vertices`)."""
@@ -296,10 +380,11 @@ class Touch(PairRows):
         motion = jnp.linalg.norm(x_end - x_start, axis=-1)
         # boxes grow by half the largest reach, so a pair within reach always overlaps
         margin = 0.5 * params["thickness"] + 2.0 * jnp.max(motion) + 1e-9
-        capacity = (self.capacity * len(self.bodies) if self.capacity else
-                    _CANDIDATES_PER_VERTEX * len(verts))
+        capacity = (self.capacity * len(self.bodies) if self.capacity else  # a surface meets its own too
+                    _CANDIDATES_PER_VERTEX * (4 if scene.selves else 1) * len(verts))
         found = broad_phase.candidates(x_start, x_end, verts, faces, margin, capacity, work=4 * capacity,
-                                       exclude_incident=False, groups=scene.rank, allowed=scene.allowed)
+                                       exclude_incident=bool(scene.selves), groups=scene.rank,
+                                       allowed=scene.allowed + tuple((r, r) for r in scene.selves))
         local = np.zeros(x_end.shape[0], np.int32)
         local[verts] = np.arange(len(verts))
         row = jnp.asarray(local)[found.vertex]  # (C,) each candidate's vertex, among verts
@@ -316,20 +401,90 @@ class Touch(PairRows):
         # a vertex whose straight path through the step crosses a triangle meets the
         # first one it crosses, from the side it came from, however far it ends beyond
         crossing = _crossing(x_start[found.vertex], p, x_start[jnp.asarray(faces)[found.triangle]], tri)
-        score = jnp.where(found.valid, jnp.where(crossing < 1.0, crossing - 2.0, score), jnp.inf)
+        valid = found.valid & self._self_pairs(found, x_start, p, tri)
+        score = jnp.where(valid, jnp.where(crossing < 1.0, crossing - 2.0, score), jnp.inf)
         best = jnp.full(len(verts), jnp.inf).at[row].min(score)
-        tie = found.valid & (score == best[row])
+        tie = valid & (score == best[row])
         nearest = jnp.full(len(verts), len(faces)).at[row].min(jnp.where(tie, found.triangle, len(faces)))
         chosen = jnp.asarray(faces)[jnp.where(nearest < len(faces), nearest, 0)]  # (P, 3)
         reach = params["thickness"] + 2.0 * (motion[verts] + jnp.max(motion[chosen], axis=1)) + 1e-9
         crossed = best < -1.0  # the chosen triangle is one the vertex's path crosses
         valid = crossed | (jnp.full(len(verts), jnp.inf).at[row].min(jnp.where(tie, dist, jnp.inf)) <= reach)
-        return jax.lax.stop_gradient(((chosen, valid), found.overflow))
+        edge_rows, edge_overflow = self._select_edges(x_start, x_end, margin, motion, params)
+        return jax.lax.stop_gradient((((chosen, valid), edge_rows), found.overflow | edge_overflow))
+
+    def _self_pairs(self, found, x_start, p, tri):
+        """``(C,)`` whether each candidate (vertex, triangle) may give a row: every pair of
+        distinct bodies; a pair within one body (self-contact) only where the vertex lies
+        farther than the body's exclusion distance from the triangle at rest (so its own and
+        its neighbouring triangles never count), in front of the triangle at the step's
+        start (not behind it, as a vertex is behind the far wall of its own body) and over
+        it at the predicted end (its projection inside the triangle, so the coplanar
+        triangles of the same face never count)."""
+        scene = self._bound()
+        if not scene.selves:
+            return jnp.ones(found.vertex.shape, bool)
+        faces = jnp.asarray(scene.faces)[found.triangle]
+        same = jnp.asarray(scene.rank)[found.vertex] == jnp.asarray(scene.rank)[faces[:, 0]]
+        rest = jnp.asarray(scene.rest)
+        p0, t0 = rest[found.vertex], rest[faces]
+        apart = jnp.linalg.norm(p0 - jnp.sum(_closest(p0, t0[:, 0], t0[:, 1], t0[:, 2])[:, :, None] * t0, axis=1), axis=-1)
+        far = apart >= jnp.asarray(scene.exclusion)[jnp.asarray(scene.rank)[found.vertex]]
+        s0 = x_start[faces]
+        front = jnp.sum((x_start[found.vertex] - s0[:, 0]) * _normal(s0[:, 0], s0[:, 1], s0[:, 2]), -1) >= 0
+        over = jnp.all(_barycentric(p, tri[:, 0], tri[:, 1], tri[:, 2]) >= -_SELF_OVER, axis=-1)
+        return ~same | (far & front & over)
+
+    def _select_edges(self, x_start, x_end, margin, motion, params):
+        """Per surface edge, the edge of a coarser body (higher rank) nearest to it at
+        ``x_end`` whose closest points lie inside both edges at ``x_start`` and ``x_end``
+        (the vertex rows hold the ends), if within reach: ``((partner (E, 2) int, st (E, 2), sign (E,)), overflow)``,
+        ``st`` the closest points' parameters along the two edges and ``sign`` the side
+        (+1, -1; 0 where the edge has no row) that the edge lies on at the step's start
+        along ``cross(edge, partner)``."""
+        scene = self._bound()
+        edges = scene.edges
+        count = len(edges)
+        if len(scene.edge_rows) == 0:
+            return (jnp.zeros((0, 2), jnp.int32), jnp.zeros((0, 2), x_end.dtype), jnp.zeros(0, x_end.dtype)), \
+                jnp.asarray(False)
+        # as many candidates per surface edge as the vertex search holds per surface vertex
+        per_element = self.capacity * len(self.bodies) / len(scene.points) if self.capacity else _CANDIDATES_PER_VERTEX
+        capacity = int(np.ceil(per_element * count))
+        pairs, _, overflow = ccd.edge_candidates(x_start, x_end, edges, margin, capacity, groups=scene.rank,
+                                                 allowed=scene.allowed)
+        live = pairs[:, 0] >= 0
+        i, j = jnp.maximum(pairs[:, 0], 0), jnp.maximum(pairs[:, 1], 0)
+        rank = jnp.asarray(scene.rank)[jnp.asarray(edges)[:, 0]]
+        own = jnp.where(rank[i] <= rank[j], i, j)  # the row belongs to the finer body's edge
+        other = jnp.where(rank[i] <= rank[j], j, i)
+        e, f = jnp.asarray(edges)[own], jnp.asarray(edges)[other]
+        st, dist, sin2 = _edge_closest(x_end[e[:, 0]], x_end[e[:, 1]], x_end[f[:, 0]], x_end[f[:, 1]])
+        st0, _, sin2_0 = _edge_closest(x_start[e[:, 0]], x_start[e[:, 1]], x_start[f[:, 0]], x_start[f[:, 1]])
+        # the closest points inside both edges at the step's start and its predicted end
+        inside = jnp.all((jnp.minimum(st, st0) > _EDGE_END) & (jnp.maximum(st, st0) < 1.0 - _EDGE_END), axis=1) & (
+            jnp.minimum(sin2, sin2_0) > _EDGE_PARALLEL)
+        reach = params["thickness"] + 2.0 * jnp.max(motion[jnp.concatenate([e, f], 1)], axis=1) + 1e-9
+        ok = live & inside & (dist <= reach)
+        score = jnp.where(ok, dist, jnp.inf)
+        best = jnp.full(count, jnp.inf).at[own].min(score)
+        tie = ok & (score == best[own])
+        nearest = jnp.full(count, count).at[own].min(jnp.where(tie, other, count))
+        nearest = nearest[scene.edge_rows]
+        has = nearest < count
+        partner = jnp.asarray(edges)[jnp.where(has, nearest, 0)]
+        mine = jnp.asarray(edges[scene.edge_rows])
+        st, _, _ = _edge_closest(x_end[mine[:, 0]], x_end[mine[:, 1]], x_end[partner[:, 0]], x_end[partner[:, 1]])
+        # the side at the step's start, along the normal the row uses
+        a, b, c, d = (x_start[k] for k in (mine[:, 0], mine[:, 1], partner[:, 0], partner[:, 1]))
+        side = jnp.sum(jnp.cross(b - a, d - c) * (a + st[:, :1] * (b - a) - c - st[:, 1:] * (d - c)), -1)
+        sign = jnp.where(has, jnp.sign(side), 0.0)
+        return (partner.astype(jnp.int32), st, sign), overflow
 
     def frame(self, x, selection, params) -> PairFrame:
         scene = self._bound()
         vertices = scene.points
-        (triangles, valid), _ = selection
+        ((triangles, valid), (partner, st, sign)), _ = selection
         # the full thickness where the vertex's surface is the finer, else half of it
         reach = jnp.where(scene.rank[vertices] < jnp.asarray(scene.rank)[triangles[:, 0]], 1.0, 0.5)
         p, a, b, c = x[vertices], x[triangles[:, 0]], x[triangles[:, 1]], x[triangles[:, 2]]
@@ -337,13 +492,24 @@ class Touch(PairRows):
         bary = jnp.clip(_barycentric(p, a, b, c), 0.0, 1.0)
         bary = bary / jnp.sum(bary, axis=-1, keepdims=True)
         phi = jnp.where(valid, jnp.sum((p - a) * normal, -1) - params["thickness"] * reach, jnp.inf)
-        m = len(vertices)
-        ones = jnp.ones(m)
-        return PairFrame(
-            vertices=jnp.concatenate([jnp.asarray(vertices)[:, None], triangles], axis=1),
-            weights=jnp.concatenate([ones[:, None], -bary], axis=1),
-            phi=phi, normal=normal,
-            mu_s=params["mu_s"] * ones, mu_k=params["mu_k"] * ones, restitution=params["restitution"] * ones)
+        ones = jnp.ones(len(vertices) + len(partner))
+        rows = jnp.concatenate([jnp.asarray(vertices)[:, None], triangles], axis=1)
+        weights = jnp.concatenate([ones[:len(vertices), None], -bary], axis=1)
+        if len(partner):  # edge-edge rows: the two edges' lines kept half a thickness apart
+            mine = jnp.asarray(scene.edges[scene.edge_rows])
+            a, b, c, d = x[mine[:, 0]], x[mine[:, 1]], x[partner[:, 0]], x[partner[:, 1]]
+            cross = jnp.cross(b - a, d - c)
+            length = jnp.linalg.norm(cross, axis=-1, keepdims=True)
+            edge_normal = sign[:, None] * cross / jnp.where(length > 0, length, 1.0)
+            s_, t_ = st[:, 0], st[:, 1]
+            gap = jnp.sum((a + s_[:, None] * (b - a) - c - t_[:, None] * (d - c)) * edge_normal, -1)
+            phi = jnp.concatenate([phi, jnp.where(sign != 0, gap - 0.5 * params["thickness"], jnp.inf)])
+            normal = jnp.concatenate([normal, edge_normal])
+            rows = jnp.concatenate([rows, jnp.concatenate([mine, partner], axis=1)])
+            weights = jnp.concatenate([weights, jnp.stack([1.0 - s_, s_, t_ - 1.0, -t_], axis=1)])
+        return PairFrame(vertices=rows, weights=weights, phi=phi, normal=normal,
+                         mu_s=params["mu_s"] * ones, mu_k=params["mu_k"] * ones,
+                         restitution=params["restitution"] * ones)
 
     def crossed(self, x_start, x_end, params):
         """Whether the surfaces passed through each other during a step moving every vertex
@@ -354,9 +520,12 @@ class Touch(PairRows):
         edge-edge candidates; a step whose rows held the surfaces apart has none (its swept
         boxes do not overlap), so they fill only where a surface came close to passing."""
         scene = self._bound()
-        capacity = self.capacity or _CROSSING_CANDIDATES_PER_VERTEX * len(scene.points)
+        # a surface's own neighbouring elements are candidates of its self-contact check
+        per_vertex = _CROSSING_CANDIDATES_PER_VERTEX * (8 if scene.selves else 1)
+        capacity = self.capacity or per_vertex * len(scene.points)
         found = ccd.tunnelled(*jax.lax.stop_gradient((x_start, x_end)), scene.faces, capacity=capacity,
-                              edge_capacity=capacity, groups=scene.rank, allowed=scene.allowed)
+                              edge_capacity=capacity, groups=scene.rank,
+                              allowed=scene.allowed + tuple((r, r) for r in scene.selves))
         return found.count, found.overflow
 
 
@@ -370,20 +539,37 @@ class _Bound:
         rank: (n,) each scene vertex's body among them (0 the finest), ``len(bodies)`` off them.
         allowed: the pairs of distinct bodies (ranks) that may touch: with ``rank`` as the
             groups, what the broad phase and the crossing check search.
+        edges: (E, 2) the surface edges, body by body (none without edge rows).
+        edge_rows: (R,) the edges (rows of ``edges``) that have an edge row: those of every
+            body but the coarsest (whose edges are partners only).
+        selves: the ranks of the bodies in contact with themselves.
+        rest: (n, 3) the scene's rest positions (for self-contact's exclusion), or None.
+        exclusion: per rank, the rest distance within which a body's own triangles never
+            meet its vertices (and 0 for the vertices off the surfaces).
     """
 
     points: np.ndarray
     faces: np.ndarray
     rank: np.ndarray
     allowed: tuple
+    edges: np.ndarray
+    edge_rows: np.ndarray
+    selves: tuple = ()
+    rest: np.ndarray | None = None
+    exclusion: tuple = ()
 
     @classmethod
-    def of(cls, faces: list, n: int) -> _Bound:
+    def of(cls, faces: list, n: int, edges: bool = True, selves=(), rest=None, exclusion=()) -> _Bound:
         rank = np.full(n, len(faces), np.int64)
         for i, f in enumerate(faces):
             rank[f.ravel()] = i
         allowed = tuple((i, j) for i in range(len(faces)) for j in range(i + 1, len(faces)))
-        return cls(np.concatenate([np.unique(f) for f in faces]), np.concatenate(faces), rank, allowed)
+        edge_list = np.concatenate([ccd.surface_edges(f) for f in faces]) if edges else np.zeros((0, 2), np.int64)
+        # edge rows on every body's surface edges but the coarsest's (its edges are partners only)
+        owners = np.flatnonzero(rank[edge_list[:, 0]] < len(faces) - 1)
+        return cls(np.concatenate([np.unique(f) for f in faces]), np.concatenate(faces), rank, allowed, edge_list,
+                   owners, tuple(selves), None if rest is None else np.asarray(rest, np.float64),
+                   tuple(float(e) for e in exclusion) + (0.0,))
 
 
 def every_pair(*names: str, **contact) -> list[Touch]:

@@ -81,7 +81,8 @@ class Reduced(Coordinates):
         contact_sweeps: Jacobi sweeps of the skin's obstacle forces per contact iteration
             (static).
         pair_sweeps: Jacobi sweeps of the pair rows' forces per contact iteration where
-            pair rows meet bones or rigid bodies (static; see :mod:`softbody.contact.pairs`).
+            pair rows meet bones or rigid bodies, each followed by one update of the skin's
+            obstacle forces (static; see :mod:`softbody.contact.pairs`).
 
     Raises:
         SkeletonError: a bad attribute.
@@ -177,18 +178,49 @@ class Reduced(Coordinates):
         compliance = (soft / p).at[index].set(w_n.mean(axis=1)[:, None])
         body = np.arange(n)
         body[rig.bone] = n + rig.tree[rig.vertex_link]
+        # The extra rows hold the skin's contact forces over the effective mass of each skin
+        # vertex at the step's start (so that they are displacements, as the other rows).
+        scale = (3.0 / jnp.maximum(w_n.sum(axis=1), 1e-300))[:, None]
+
+        def skin_update(at, force, root):
+            """One relaxed projected Jacobi update of the skin's contact forces ``force``
+            ``(c, 3)`` with the skin vertices at ``at`` ``(c, 3)`` (where the body puts them
+            under the current forces) and ``root`` ``(c, 3)`` the square roots of the
+            Delassus diagonal (see ``sweep``)."""
+            w = jnp.sum(root**2, axis=1) / 3.0
+            near, _, _, _ = law(at, index, valid)
+            active = near | jnp.any(force != 0, axis=1)
+            reach = jax.ops.segment_sum(jnp.where(active, root.sum(axis=1), 0.0), tree, len(rig.links))[tree]
+            bound = root.max(axis=1) * (reach + jnp.where(active, 0.0, root.sum(axis=1)))
+            touching, _, correction, _ = law(at - force * w[:, None], index, valid, kinetic=True)
+            target = jnp.where(touching[:, None], correction, 0.0) / jnp.where(w > 0, w, 1.0)[:, None]
+            fraction = jnp.where(bound > 0, w / jnp.where(bound > 0, bound, 1.0), 0.0)
+            return force + fraction[:, None] * (target - force)
 
         def respond(aux):
             """The soft vertices move by ``force / P``, the bones by ``B K^-1 B^T force``
-            (the Jacobian at ``aux``'s pose made once for every sweep of an iteration)."""
+            (the Jacobian at ``aux``'s pose made once for every sweep of an iteration); then
+            the skin's obstacle forces take one update at the new positions and the bones
+            respond to their change, so that a part's pair rows and obstacle rows relax
+            together (a soft body on a rigid box on the ground)."""
             z, pose = aux
             jac = rig._jacobian(pose)
+            value = rig.joint_values(z)
+            free_dofs = 1.0 - ((value <= jnp.asarray(rig.lower)) | (value >= jnp.asarray(rig.upper))).astype(p.dtype)
+            k_free = inverse(jac, free_dofs)  # joints at a limit held while the skin relaxes
+            root = jnp.sqrt(delassus_diagonal(jac[skin], k_free)) if len(skin) else None
 
             def move_by(x, force):
                 g_z = -rig.reduce(pose, force[bone])
                 move = 1.0 - _held(rig, z, g_z)
                 shift = jnp.einsum("vik,k->vi", jac, inverse(jac, move) @ (-g_z))
-                return x.at[:n].add(soft * force / p).at[bone].add(shift)
+                x = x.at[:n].add(soft * force / p).at[bone].add(shift)
+                if not len(skin):
+                    return x
+                old = forces(x)
+                new = skin_update(x[index], old, root)
+                pushed = rig.reduce(pose, jnp.zeros((len(rig.bone), 3), p.dtype).at[skin].add(new - old))
+                return x.at[bone].add(jnp.einsum("vik,k->vi", jac, k_free @ pushed)).at[n:].set(new / scale)
 
             return move_by
 
@@ -206,10 +238,6 @@ class Reduced(Coordinates):
 
             scale = jnp.zeros((0, 1), p.dtype)
             return ContactSweep(soft, place, sweep, owners, scale, forces, rigid)
-
-        # The extra rows hold the skin's contact forces over the effective mass of each skin
-        # vertex at the step's start (so that they are displacements, as the other rows).
-        scale = (3.0 / jnp.maximum(w_n.sum(axis=1), 1e-300))[:, None]
 
         def sweep(x, x_new, g, aux):
             z, pose = aux
@@ -234,19 +262,11 @@ class Reduced(Coordinates):
             # P; a skin vertex sliding at the step's start meets the kinetic cone only, see
             # softbody.contact.law.SLIDING_SPEED): the fixed point does not depend on the bound.
             root = jnp.sqrt(delassus_diagonal(b_skin, k_inv))  # (c, 3)
-            w = jnp.sum(root**2, axis=1) / 3.0
 
             def update(force, _):
                 moved = pose.x[skin] - jnp.einsum("cik,k->ci", b_skin,
                                                   k_inv @ (g_z - jnp.einsum("cik,ci->k", b_skin, force)))
-                near, _, _, _ = law(moved, index, valid)
-                active = near | jnp.any(force != 0, axis=1)
-                reach = jax.ops.segment_sum(jnp.where(active, root.sum(axis=1), 0.0), tree, len(rig.links))[tree]
-                bound = root.max(axis=1) * (reach + jnp.where(active, 0.0, root.sum(axis=1)))
-                touching, _, correction, _ = law(moved - force * w[:, None], index, valid, kinetic=True)
-                target = jnp.where(touching[:, None], correction, 0.0) / jnp.where(w > 0, w, 1.0)[:, None]
-                fraction = jnp.where(bound > 0, w / jnp.where(bound > 0, bound, 1.0), 0.0)
-                return force + fraction[:, None] * (target - force), None
+                return skin_update(moved, force, root), None
 
             force_new, _ = jax.lax.scan(update, force, None, length=self.contact_sweeps)
             d_z = k_inv @ (g_z - jnp.einsum("cik,ci->k", b_skin, force_new))
