@@ -21,6 +21,8 @@ from softbody.scene import Fix, SoftBody
 from softbody.shell import Bending, Membrane, hinges, shell_body
 from softbody.simulate import rollout, solve_static
 
+from test_shell import _sheet
+
 jax.config.update("jax_enable_x64", True)
 
 ROTATION = np.linalg.qr(np.random.default_rng(2).standard_normal((3, 3)))[0]
@@ -31,15 +33,7 @@ D = E * T**3 / (12 * (1 - NU**2))
 def _grid(nx, ny, h):
     """A structured sheet of ``nx x ny`` square cells of side ``h``, alternating diagonals, in
     the plane of ``ROTATION``'s first two columns: ``(points (n, 3), triangles, (a, b))``."""
-    a, b = np.meshgrid(np.arange(nx + 1) * h, np.arange(ny + 1) * h, indexing="ij")
-    a, b = a.ravel(), b.ravel()
-    idx = np.arange(len(a)).reshape(nx + 1, ny + 1)
-    tris = []
-    for i in range(nx):
-        for j in range(ny):
-            p, q, r, s = idx[i, j], idx[i + 1, j], idx[i + 1, j + 1], idx[i, j + 1]
-            tris += [[p, q, r], [p, r, s]] if (i + j) % 2 else [[p, q, s], [q, r, s]]
-    return np.stack([a, b, np.zeros_like(a)], axis=1) @ ROTATION.T, np.asarray(tris), (a, b)
+    return _sheet(ROTATION, nx, ny, (nx * h, ny * h), offset=(0.0, 0.0, 0.0))
 
 
 def _energy(term, x):

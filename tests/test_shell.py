@@ -21,10 +21,10 @@ from softbody.simulate import solve_static
 E, NU, T = 2e8, 0.3, 3e-4  # a stiff woven fabric: E t = 6e4 N/m
 
 
-def _sheet(rotation, nx=6, ny=4, size=(0.3, 0.2)):
-    """A structured triangulated ``size`` rectangle in the plane spanned by the first two
-    columns of ``rotation``: ``(points (n, 3), triangles (m, 3), (a, b))`` with ``a, b`` each
-    vertex's in-plane coordinates."""
+def _sheet(rotation, nx=6, ny=4, size=(0.3, 0.2), offset=(0.1, -0.2, 0.3)):
+    """A structured triangulated ``size`` rectangle (alternating diagonals) in the plane
+    spanned by the first two columns of ``rotation``, moved by ``offset``: ``(points (n, 3),
+    triangles (m, 3), (a, b))`` with ``a, b`` each vertex's in-plane coordinates."""
     a, b = np.meshgrid(np.linspace(0, size[0], nx + 1), np.linspace(0, size[1], ny + 1), indexing="ij")
     a, b = a.ravel(), b.ravel()
     idx = np.arange(len(a)).reshape(nx + 1, ny + 1)
@@ -33,7 +33,7 @@ def _sheet(rotation, nx=6, ny=4, size=(0.3, 0.2)):
         for j in range(ny):
             p, q, r, s = idx[i, j], idx[i + 1, j], idx[i + 1, j + 1], idx[i, j + 1]
             tris += [[p, q, r], [p, r, s]] if (i + j) % 2 else [[p, q, s], [q, r, s]]
-    points = np.stack([a, b, np.zeros_like(a)], axis=1) @ rotation.T + [0.1, -0.2, 0.3]
+    points = np.stack([a, b, np.zeros_like(a)], axis=1) @ rotation.T + np.asarray(offset)
     return points, np.asarray(tris), (a, b)
 
 
