@@ -229,8 +229,8 @@ class VolumeElement(VertexTerm):
     weight is 0 in the tet energy and in the PD matrix) and hands the term the volume
     weights ``w_v = 3 lambda`` ``(t,)`` of every tet (differentiable in ``E`` and ``nu``),
     e.g. a nodally averaged volume that does not lock for ``nu -> 0.5``
-    (:class:`softbody.nodal.NodalVolume`). :class:`VolumeTerm` targets do not reach those
-    tets.
+    (:class:`softbody.nodal.NodalVolume`). :class:`VolumeTerm` targets would not reach those
+    tets: :func:`softbody.model.build` refuses a volume term whose static ``tets`` overlap them.
     """
 
     tets: np.ndarray

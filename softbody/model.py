@@ -22,7 +22,7 @@ import numpy as np
 
 from softbody import linsolve, rotation
 from softbody._interfaces import (Capabilities, ElementTerm, Integrator, PairRows, Rows, Term, VertexTerm,
-                                  VolumeElement)
+                                  VolumeElement, VolumeTerm)
 from softbody.rigid import RigidBody
 from softbody.scene import SoftBody, assemble
 from softbody._types import Model, Options, Params, Prepared, SceneError, State, scene_features
@@ -277,6 +277,11 @@ def build(
     if len(np.unique(covered)) != len(covered):
         raise SceneError("two volume elements (e.g. NodalVolume) cover the same tets; give each tet's volume to one "
                          "of them")
+    for term in terms:  # volume targets (pneumatic cells) act on the per-tet volume term, which those tets lack
+        if isinstance(term, VolumeTerm) and np.isin(np.asarray(getattr(term, "tets", [])), covered).any():
+            raise SceneError(f"{type(term).__name__} sets volume targets on tets that a volume element (e.g. "
+                             "NodalVolume) covers, where they would not act; leave those tets out of the element "
+                             "(NodalVolume.on(mesh, tets=...))")
     channels = [c for term in terms for c in term.channel_names]
     if len(set(channels)) != len(channels):
         raise SceneError(f"actuator channel names must be unique, got {channels}")

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from softbody import rotation
+from softbody.actuators import PneumaticCells
 from softbody.elastic import corotated, deformation_gradient
 from softbody.gradients import Implicit, central_difference
 from softbody.material import Material
@@ -184,6 +185,16 @@ def test_two_elements_on_the_same_tets_are_refused():
     mesh = examples.cube(size=0.025)
     with pytest.raises(SceneError, match="cover the same tets"):
         build(SoftBody(mesh, MATERIAL, actuators=[NodalVolume.on(mesh), NodalVolume.on(mesh, np.array([0, 1]))]))
+
+
+def test_volume_targets_on_covered_tets_are_refused():
+    """Pneumatic cells act on the per-tet volume term, which the element's tets lack: refused
+    before compiling where they overlap, accepted on the tets the element leaves out."""
+    mesh = examples.cube(size=0.025)
+    cells = PneumaticCells(np.arange(4), np.zeros(4), ("air",))
+    with pytest.raises(SceneError, match="volume targets on tets that a volume element"):
+        build(SoftBody(mesh, MATERIAL, actuators=[NodalVolume.on(mesh), cells]))
+    build(SoftBody(mesh, MATERIAL, actuators=[NodalVolume.on(mesh, np.arange(4, mesh.n_tets)), cells]))
 
 
 def test_the_element_follows_its_body_into_a_scene():
