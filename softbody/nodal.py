@@ -39,6 +39,7 @@ import numpy as np
 
 from softbody._interfaces import VolumeElement
 from softbody._types import SceneError
+from softbody.elastic import local_matrices
 from softbody.meshing import TetMesh
 
 Array = jax.Array
@@ -114,9 +115,7 @@ class NodalVolume(VolumeElement):
         rest = jnp.zeros(self.n_local, v0.dtype).at[local].add(jnp.broadcast_to(v0[:, None] / 4.0, local.shape))
         stiff = jnp.zeros(self.n_local, v0.dtype).at[local].add(jnp.broadcast_to((lam * v0)[:, None] / 4.0,
                                                                                    local.shape))
-        d = dminv[:, :, idx]
-        g = jnp.concatenate([-d.sum(axis=0, keepdims=True), d], axis=0)  # (4, 3, m) shape gradients
-        blocks = jnp.einsum("ajm,bjm,m->mab", g, g, model.step.volume_weight * 3.0 * lam * v0)
+        blocks = local_matrices(dminv[:, :, idx], model.step.volume_weight * 3.0 * lam * v0)
         return rest, stiff, blocks
 
     def stencil(self) -> np.ndarray:

@@ -381,9 +381,9 @@ class Contact:
                 if parts.rigid is None:
                     (x_new, force_new), _ = update((x_new, force), None)
                 else:  # rows on rigid parts couple through the part's motion: several sweeps
-                    held = x_new[n:]  # the extra rows' forces, which the sweeps may relax too
+                    before = x_new[n:]  # the extra rows' forces, which the sweeps may relax too
                     (x_new, force_new), _ = jax.lax.scan(update, (x_new, force), None, length=parts.rigid.sweeps)
-                    rest = jnp.concatenate([rest, (parts.scale * (x_new[n:] - held)).ravel()])
+                    rest = jnp.concatenate([rest, (parts.scale * (x_new[n:] - before)).ravel()])
                 rest = jnp.concatenate([rest, (force_new - force).ravel()])
                 x_new = jnp.concatenate([x_new, force_new])
             residual = norm(jnp.concatenate([(touching * p * (_positions(x_new, n) - placed)).ravel(), rest]))

@@ -205,10 +205,12 @@ class Reduced(Coordinates):
             together (a soft body on a rigid box on the ground)."""
             z, pose = aux
             jac = rig._jacobian(pose)
-            value = rig.joint_values(z)
-            free_dofs = 1.0 - ((value <= jnp.asarray(rig.lower)) | (value >= jnp.asarray(rig.upper))).astype(p.dtype)
-            k_free = inverse(jac, free_dofs)  # joints at a limit held while the skin relaxes
-            root = jnp.sqrt(delassus_diagonal(jac[skin], k_free)) if len(skin) else None
+            if len(skin):
+                value = rig.joint_values(z)
+                free_dofs = 1.0 - ((value <= jnp.asarray(rig.lower)) | (value >= jnp.asarray(rig.upper))).astype(
+                    p.dtype)
+                k_free = inverse(jac, free_dofs)  # joints at a limit held while the skin relaxes
+                root = jnp.sqrt(delassus_diagonal(jac[skin], k_free))
 
             def move_by(x, force):
                 g_z = -rig.reduce(pose, force[bone])
