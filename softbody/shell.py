@@ -79,6 +79,24 @@ def _rest_frames(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray,
     return np.concatenate([-dminv.sum(axis=1, keepdims=True), dminv], axis=1), area
 
 
+def _check_sheet(triangles: np.ndarray) -> None:
+    """Raise unless the triangles ``(m, 3)`` (each of non-zero area) are distinct and no edge
+    belongs to more than two of them (a manifold sheet, with or without boundary)."""
+    tri = np.asarray(triangles, np.int64)
+    _, first, counts = np.unique(np.sort(tri, axis=1), axis=0, return_index=True, return_counts=True)
+    if counts.max() > 1:
+        twice = tri[first[np.argmax(counts)]]
+        raise SceneError(f"Membrane: {int(np.sum(counts > 1))} triangles are given more than once, e.g. "
+                         f"{twice.tolist()} ({counts.max()} times), which would count their stiffness and mass "
+                         "as often; give each triangle once")
+    edges = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)
+    key, counts = np.unique(edges, axis=0, return_counts=True)
+    if counts.max() > 2:
+        raise SceneError(f"Membrane: the triangles are not a manifold surface: {int(np.sum(counts > 2))} edges are "
+                         f"shared by more than two triangles, e.g. edge {key[np.argmax(counts)].tolist()} by "
+                         f"{counts.max()}; give each sheet meeting there its own Membrane (and Bending)")
+
+
 @dataclass(frozen=True, eq=False)
 class Membrane(VertexTerm):
     """A membrane on triangles of a body's vertices (the module docstring's energy).
@@ -122,8 +140,10 @@ class Membrane(VertexTerm):
                 areal_density: kg/m^2 (>= 0; 0: a membrane without mass).
 
         Raises:
-            SceneError: an unknown region or one without faces, indices outside the mesh,
-                a degenerate (zero-area) triangle, or non-physical material values.
+            SceneError: an unknown region or one without faces, an empty selection, indices
+                outside the mesh, a degenerate (zero-area) triangle, a triangle given twice, an
+                edge shared by more than two triangles (a non-manifold sheet), or non-physical
+                material values (e.g. thickness <= 0).
         """
         regions = mesh.regions if isinstance(mesh, TetMesh) else {}
         points = np.asarray(mesh.points if isinstance(mesh, TetMesh) else mesh, np.float64)
@@ -134,7 +154,11 @@ class Membrane(VertexTerm):
             if len(triangles) == 0:
                 raise SceneError(f"Membrane: region {name!r} names no triangles (faces); select a surface region")
         tri = np.asarray(triangles)
-        if tri.ndim != 2 or tri.shape[1] != 3 or len(tri) == 0 or not np.issubdtype(tri.dtype, np.integer):
+        if tri.size == 0:
+            raise SceneError(f"Membrane: the triangle selection names no triangles (shape {tri.shape}); give (m, 3) "
+                             "vertex indices with m >= 1 or a surface region's name, e.g. "
+                             "mesh.regions[name].faces")
+        if tri.ndim != 2 or tri.shape[1] != 3 or not np.issubdtype(tri.dtype, np.integer):
             raise SceneError(f"Membrane: triangles must be (m, 3) vertex indices with m >= 1, got {tri.dtype} of "
                              f"shape {tri.shape}")
         if tri.min() < 0 or tri.max() >= len(points):
@@ -150,6 +174,7 @@ class Membrane(VertexTerm):
         if len(bad):
             raise SceneError(f"Membrane: {len(bad)} degenerate (zero-area) triangles, e.g. {tri[bad[0]].tolist()}; "
                              "remove them from the selection")
+        _check_sheet(tri)
         gradients, area = _rest_frames(points, tri)
         return cls(tri.astype(np.int32), gradients, area, float(E), float(nu), float(thickness), float(areal_density))
 

@@ -15,7 +15,7 @@ from softbody.material import Material
 from softbody.meshing import examples
 from softbody.model import Options, SceneError, build, prepare
 from softbody.scene import SoftBody
-from softbody.shell import Membrane
+from softbody.shell import Membrane, hinges
 from softbody.simulate import solve_static
 
 E, NU, T = 2e8, 0.3, 3e-4  # a stiff woven fabric: E t = 6e4 N/m
@@ -110,6 +110,35 @@ def test_bad_membranes_are_refused():
     with pytest.raises(SceneError, match="names no triangles"):
         Membrane.on(mesh.with_regions(empty=mesh.regions["tip"].__class__(vertices=[0])), "empty", E=E, nu=NU,
                     thickness=T)
+
+
+def test_an_empty_triangle_selection_is_refused_naming_the_fix():
+    """An empty array (e.g. a face selection that matched nothing) is named as such, with
+    what to give instead."""
+    points, _, _ = _sheet(ROTATION, nx=2, ny=2)
+    for empty in (np.zeros((0, 3), np.int64), []):
+        with pytest.raises(SceneError, match="names no triangles.*surface region"):
+            Membrane.on(points, empty, E=E, nu=NU, thickness=T)
+
+
+def test_a_triangle_given_twice_is_refused():
+    """A repeated triangle (in any vertex order) would count its stiffness twice."""
+    points, tris, _ = _sheet(ROTATION, nx=2, ny=2)
+    twice = np.vstack([tris, tris[3, [1, 2, 0]]])
+    with pytest.raises(SceneError, match=r"given more than once, e\.g\. .* give each triangle once"):
+        Membrane.on(points, twice, E=E, nu=NU, thickness=T)
+
+
+def test_a_non_manifold_membrane_is_refused():
+    """Three sheets meeting on one edge (a fin on a sheet) are not one membrane: refused
+    with the shared edge and the fix, for a membrane alone too (without a bending term,
+    whose hinges need a manifold)."""
+    points, tris, _ = _sheet(ROTATION, nx=2, ny=2)
+    edge = hinges(tris)[0, :2]  # an interior edge of the 2 x 2 sheet, shared by two of its triangles
+    fin = np.vstack([points, points[edge].mean(axis=0) + 0.1 * ROTATION[:, 2]])
+    fan = np.vstack([tris, [[edge[0], edge[1], len(points)]]])
+    with pytest.raises(SceneError, match=r"not a manifold surface: 1 edges .* by 3; give each sheet"):
+        Membrane.on(fin, fan, E=E, nu=NU, thickness=T)
 
 
 PRESSURE = 5e3  # Pa
