@@ -33,8 +33,10 @@ Energy terms (``model.terms``: actuators and user terms) come in three kinds, on
 Every term also has ``channel_names``, ``channel_bounds()``, ``init_params()`` and
 ``prepare(model, params, dminv, volume)``. Concrete activations outside a channel's bounds
 (a muscle's [0, 1], a cavity's pressure limits, ...) are refused with a :class:`SceneError`
-before anything compiles; inside a traced computation (an optimisation) they are clipped
-to the bounds, with zero gradient beyond: parametrise bounded controls there (e.g.
+before anything compiles; inside a traced computation (under ``jax.jit``, ``jax.grad`` or
+``jax.vmap``, e.g. an optimisation) their values are unknown, so they are clipped to the
+bounds without an error or a flag (checking would need a host callback in the compiled
+program), with zero gradient beyond: parametrise bounded controls there (e.g.
 :class:`softbody.control.ControlGrid`).
 
 Controls have one layout: an array ``(n_steps, n_channels)`` of actuator activations in
@@ -350,6 +352,10 @@ def step(model: Model, prep: Prepared, state: State, activation=None, force=None
         model: the compiled scene; prep: :func:`softbody.model.prepare` of its params.
         state: the current :class:`State`.
         activation: ``(n_channels,)`` actuator activations, or ``None`` (zeros).
+            Concrete values outside a channel's bounds (``model.channel_bounds``, e.g. a
+            muscle's ``[0, 1]``) are refused; traced ones (under ``jax.jit``, ``jax.grad``,
+            ``jax.vmap``) cannot be checked and are clipped to the bounds without an error or
+            a flag, with zero gradient beyond them.
         force: ``(n, 3)`` external forces in newtons, or ``None``.
 
     Returns:
@@ -357,13 +363,17 @@ def step(model: Model, prep: Prepared, state: State, activation=None, force=None
 
     Raises:
         SceneError: the scene's integrator (``Options.integrator``) is not implicit Euler:
-            one step of another would need its memory (use :func:`rollout`).
+            one step of another would need its memory (use :func:`rollout`); a state or
+            ``prep`` of another model, a ``force`` not ``(n, 3)`` or an ``activation`` of
+            the wrong shape or (when concrete) out of its channels' bounds.
     """
     integrator = integrator_of(model)
     if type(integrator) is not ImplicitEuler:
         raise SceneError(f"step takes one implicit-Euler step, but this scene's integrator is "
                          f"{type(integrator).__name__}() (Options.integrator), whose steps need the earlier states: "
                          "use rollout(..., n_steps=k), or build the scene with Options(integrator=None)")
+    _check_fit(model, state=state, prep=prep)
+    _check_force(model, force, "force")
     new, _, info = integrator.step(model, prep, state, (), _activation(model, activation), force)
     return new, info
 
@@ -429,19 +439,41 @@ def _contact_forces(model, params, xs, vs, controls, forces, t0):
         x_start, v_start, times, xs[1:], controls, forces)
 
 
+def _check_fit(model: Model, **given) -> None:
+    """Refuse states, params and prepared operators whose shapes do not fit ``model`` (shapes
+    are static: this works on traced values too). ``given`` maps the name an argument has
+    in the caller (``state0`` or ``state``: a :class:`State`; ``params``; ``prep``: a
+    :class:`Prepared`) to it, or to ``None``.
+
+    Raises:
+        SceneError: naming the argument's field, its shape, the shape the model needs and
+            where a fitting one comes from.
+    """
+    n, t, m = model.n_vertices, model.n_tets, len(model.material_names)
+    fields = {"params": ({"morph": (n, 3), "E": (m,)}, "the params build returned with this model"),
+              "prep": ({"x_rest": (n, 3), "volume": (t,)}, "prepare(model, params) with this model's params")}
+    state = ({"x": (n, 3), "v": (n, 3), "rot": (4, t)}, "initial_state(model, params) with this model's params")
+    for owner, value in given.items():
+        shapes, fix = fields.get(owner, state)
+        for field, shape in shapes.items():
+            got = getattr(value, field, None)
+            if got is not None and jnp.shape(got) != shape:
+                raise SceneError(f"{owner}.{field} has shape {jnp.shape(got)} but this model ({n} vertices, {t} tets, "
+                                 f"{m} material(s)) needs {shape}: it belongs to another model; use {fix}")
+
+
+def _check_force(model: Model, force, name: str) -> None:
+    """Refuse a one-step external force that is not ``None`` or ``(n, 3)``."""
+    if force is not None and jnp.shape(force) != (model.n_vertices, 3):
+        raise SceneError(f"{name} must have shape ({model.n_vertices}, 3) (newtons on each of the model's vertices) "
+                         f"or be None, got {jnp.shape(force)}")
+
+
 def _check_controls(model: Model, controls, forces, n_steps, params=None, state0=None):
     if n_steps is not None and (isinstance(n_steps, bool) or not isinstance(n_steps, (int, np.integer))):
         raise SceneError(f"n_steps must be a whole number of steps, got {n_steps!r}; round a computed count, "
                          "e.g. n_steps=round(duration / dt)")
-    n, t, m = model.n_vertices, model.n_tets, len(model.material_names)
-    for name, shape in {"state0.x": (n, 3), "state0.v": (n, 3), "state0.rot": (4, t), "params.morph": (n, 3),
-                        "params.E": (m,)}.items():
-        owner, field = name.split(".")
-        value = getattr({"state0": state0, "params": params}[owner], field, None)
-        if value is not None and jnp.shape(value) != shape:
-            raise SceneError(f"{name} has shape {jnp.shape(value)} but this model ({n} vertices, {t} tets, "
-                             f"{m} material(s)) needs {shape}: it belongs to another model; use the params build "
-                             "returned with this model and initial_state(model, params)")
+    _check_fit(model, state0=state0, params=params)
     if controls is not None:
         controls = jnp.asarray(controls)
         if controls.ndim != 2 or controls.shape[1] != model.n_channels:
@@ -541,6 +573,10 @@ def rollout(model: Model, params: Params, state0: State, controls=None, forces=N
         model, params: from :func:`softbody.model.build`.
         state0: initial :class:`State` (:func:`softbody.model.initial_state`).
         controls: ``(n_steps, n_channels)`` activations, or ``None``.
+            Concrete values outside a channel's bounds (``model.channel_bounds``, e.g. a
+            muscle's ``[0, 1]``) are refused; traced ones (under ``jax.jit``, ``jax.grad``,
+            ``jax.vmap``) cannot be checked and are clipped to the bounds without an error or
+            a flag, with zero gradient beyond them.
         forces: ``(n_steps, n, 3)`` external forces, or ``None``.
         n_steps: number of steps (taken from controls/forces when omitted).
         throw: raise :class:`SimulationError` for the first step whose
@@ -555,9 +591,10 @@ def rollout(model: Model, params: Params, state0: State, controls=None, forces=N
         step carries that code.
 
     Raises:
-        SceneError: bad control or force shapes, or NaN/inf in them, ``n_steps`` not a whole
-            number >= 1, or a state or params whose shapes do not fit the model (before
-            compiling), whatever ``throw``.
+        SceneError: bad control or force shapes, or NaN/inf in them, concrete controls
+            outside their channels' bounds, ``n_steps`` not a whole number >= 1, or a state
+            or params whose shapes do not fit the model (before compiling), whatever
+            ``throw``.
         SimulationError: with ``throw=True``, a step stopped at the iteration cap without
             meeting its tolerance, its state or residual became non-finite, or it ended
             with more inverted tets (``det F <= 0``) than ``state0``; the message names the
@@ -613,6 +650,10 @@ def solve_static(model: Model, params: Params, force=None, activation=None, x0=N
     Arguments:
         force: ``(n, 3)`` external forces in newtons, or ``None``.
         activation: ``(n_channels,)`` or ``None``.
+            Concrete values outside a channel's bounds (``model.channel_bounds``, e.g. a
+            muscle's ``[0, 1]``) are refused; traced ones (under ``jax.jit``, ``jax.grad``,
+            ``jax.vmap``) cannot be checked and are clipped to the bounds without an error or
+            a flag, with zero gradient beyond them.
         x0: initial guess ``(n, 3)`` (default: the rest shape, with a prescribed ``motion``
             its fixed vertices where the motion puts them at ``t = 0``), which also holds the
             fixed vertices' positions.
@@ -625,7 +666,10 @@ def solve_static(model: Model, params: Params, force=None, activation=None, x0=N
         :class:`~softbody._types.RESULTS` code (``inverted``: more inverted tets than ``x0``).
 
     Raises:
-        SceneError: when the model has no fixed vertices (the equilibrium is not unique).
+        SceneError: when the model has no fixed vertices (the equilibrium is not unique);
+            params of another model, a ``force`` not ``(n, 3)``, an ``x0`` not ``(n, 3)``
+            or an ``activation`` of the wrong shape or (when concrete) out of its channels'
+            bounds.
         SimulationError: with ``throw=True``, the solve stopped at the iteration cap, its
             solution is non-finite (e.g. the load exceeds what the body can carry, such as
             a cavity pressure past its maximum, where no equilibrium exists), or it has more
@@ -634,6 +678,8 @@ def solve_static(model: Model, params: Params, force=None, activation=None, x0=N
     """
     if len(model.fixed) == 0:
         raise SceneError("a static solve needs fixed vertices (build the model with fixed=...)")
+    _check_fit(model, params=params)
+    _check_force(model, force, "force")
     activation = _activation(model, activation)
     with _forward_mode_hint():
         x, info, failed, branch = _solve_static(model, params, force, activation, x0)

@@ -22,9 +22,10 @@ from softbody.cli import main
 from softbody.material import Material
 from softbody.meshing import save
 from softbody.meshing.grid import grid_box
-from softbody.model import SceneError, build, initial_state
+from softbody.actuators import Muscle
+from softbody.model import Options, SceneError, build, initial_state, prepare
 from softbody.scene import SoftBody
-from softbody.simulate import rollout
+from softbody.simulate import rollout, solve_static, step
 
 ROOT = Path(__file__).resolve().parents[1]
 #: A 0.1 x 0.02 x 0.02 m beam on 5 x 1 x 1 cells (24 vertices, 30 tets), clamped at x = 0.
@@ -179,6 +180,47 @@ def test_rollout_refuses_a_state_or_params_of_another_model(beam):
         rollout(model, params, initial_state(other, other_params), n_steps=2)
     with pytest.raises(SceneError, match=r"params.morph has shape \(12, 3\) .* needs \(24, 3\)"):
         rollout(model, other_params, state, n_steps=2)
+
+
+def test_step_refuses_a_state_or_prep_of_another_model(beam, no_compiling):
+    """step and solve_static used to fail inside JAX with "add got incompatible shapes"."""
+    model, params = beam
+    other, other_params = build(SoftBody(grid_box((0.1, 0.02, 0.02), (2, 1, 1)), Material(), fixed="fixed"))
+    state = initial_state(model, params)
+    with pytest.raises(SceneError, match=r"state.x has shape \(12, 3\) but this model .* needs \(24, 3\): it belongs "
+                                         r"to another model; use initial_state\(model, params\)"):
+        step(model, prepare(model, params), initial_state(other, other_params))
+    with pytest.raises(SceneError, match=r"prep.x_rest has shape \(12, 3\) .* use prepare\(model, params\)"):
+        step(model, prepare(other, other_params), state)
+    with pytest.raises(SceneError, match=r"force must have shape \(24, 3\) .* got \(3, 3\)"):
+        step(model, prepare(model, params), state, force=jnp.zeros((3, 3)))
+
+
+def test_solve_static_refuses_params_or_a_force_of_another_model(beam, no_compiling):
+    model, params = beam
+    other, other_params = build(SoftBody(grid_box((0.1, 0.02, 0.02), (2, 1, 1)), Material(), fixed="fixed"))
+    with pytest.raises(SceneError, match=r"params.morph has shape \(12, 3\) .* needs \(24, 3\): it belongs to another "
+                                         r"model; use the params build returned with this model"):
+        solve_static(model, other_params)
+    with pytest.raises(SceneError, match=r"force must have shape \(24, 3\)"):
+        solve_static(model, params, force=jnp.zeros((12, 3)))
+
+
+def test_activations_out_of_bounds_are_refused_when_concrete_and_clipped_when_traced():
+    """Under jit the value is unknown: no check (it would need a host callback, which keeps a
+    program out of the compilation cache); the terms clip it (tests/test_actuators.py) and
+    the documentation says so."""
+    muscle = Muscle.from_polyline(BEAM, [[0.0, 0.01, 0.01], [0.1, 0.01, 0.01]], radius=0.02)
+    model, params = build(SoftBody(BEAM, Material(E=1e5, nu=0.3), fixed="fixed", actuators=(muscle,)),
+                          options=Options(gravity=(0.0, 0.0, 0.0)))
+    state = initial_state(model, params)
+    with pytest.raises(SceneError, match=r"controls\[0, 0\] \(step 0\) = 1.5 is outside channel .* \[0, 1\]"):
+        rollout(model, params, state, controls=jnp.full((1, 1), 1.5))
+    traced = jax.make_jaxpr(lambda c: rollout(model, params, state, controls=c, throw=False))(jnp.full((1, 1), 1.5))
+    assert "callback" not in str(traced)
+    assert "clipped to the bounds without an error or a flag" in " ".join(rollout.__doc__.split())
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    assert "under `jax.jit`/`jax.grad`/`jax.vmap` their values are unknown: there they are clipped" in readme
 
 
 # --------------------------------------------------------------------------------------
