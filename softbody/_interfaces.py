@@ -457,8 +457,9 @@ class Coordinates:
                 valid (c,), kinetic=False) -> (touching (c,), stick (c,), correction (c, 3),
                 normal (c, 3))`` for trial positions ``y`` of the scene's vertices ``index``
                 (see :class:`softbody.contact.Contact`), for coordinates whose own unknowns
-                touch obstacles; ``kinetic=True``: vertices sliding at the step's start
-                (``softbody.contact.law.SLIDING_SPEED``) meet the kinetic cone only.
+                touch obstacles; ``kinetic=True``: one cone per vertex and step, the kinetic
+                one for vertices sliding at the step's start, else the static one
+                (``softbody.contact.law.SLIDING_SPEED``).
 
         Returns:
             A :class:`ContactSweep`.

@@ -330,6 +330,28 @@ def test_stack_of_three_rigid_boxes_stays_for_two_seconds():
         assert np.abs(x[:, start:end] - x[0, start:end]).max() < 1e-3
 
 
+def test_a_rigid_box_dropped_on_another_with_more_static_than_kinetic_friction_comes_to_rest():
+    """A 2 cm rigid cube dropped 1 cm onto another resting on the ground, offset by (0.3,
+    0.2) of an edge, static friction above kinetic (0.5, 0.4) on both: every step converges
+    (the impact step stopped at the 3000-iteration cap while a row could test the static cone
+    and slide on the kinetic one within a step) and the upper cube comes to rest on the
+    lower one: its rows closed (no penetration past 1% of the edge), still, where it landed."""
+    edge = 0.02
+    lower = RigidBody(box((edge,) * 3, centre=(0.0, 0.0, edge / 2)), density=500.0, name="lower")
+    upper = RigidBody(box((edge,) * 3, centre=(0.3 * edge, 0.2 * edge, 1.5 * edge + 0.01)), density=500.0,
+                      name="upper")
+    model, params = build([lower, upper], obstacles=[Plane(mu_s=0.5, mu_k=0.4)],
+                          rows=[Touch("upper", "lower", mu_s=0.5, mu_k=0.4, thickness=THICKNESS, edges=True)],
+                          options=Options(dt=DT, tol=1e-6, max_iter=3000))
+    traj = rollout(model, params, initial_state(model), n_steps=20)  # throws unless every step converged
+    gaps = _row_gaps(model, params, traj.x)
+    assert gaps.min() > -0.01 * edge and abs(gaps[-1]) < 1e-8
+    start, end = model.body("upper").vertices
+    centre = np.asarray(traj.x)[:, start:end].mean(axis=1)
+    np.testing.assert_allclose(centre[-1, :2], centre[0, :2], atol=1e-3)
+    assert np.abs(np.asarray(traj.v)[-1]).max() < 1e-3
+
+
 def test_crossed_edges_hold_a_box_on_a_ridge():
     """A rigid 2 cm box turned 45 degrees about y, dropped onto a held cube turned 45 degrees
     about x: only their edges meet, crossed at right angles, no vertex over a face. The

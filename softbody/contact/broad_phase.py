@@ -14,8 +14,9 @@ pairs; :func:`required_capacity` sizes the fixed buffers outside ``jit``.
 **Algorithm: a hashed uniform grid with a flat work list.** Each axis ``k`` gets a cell size
 ``h_k`` a little over half of ``e_v + e_t``, the largest vertex-box and triangle-box extents
 along it. Each triangle is filed once, under the cell of its box's lower corner: the cell
-is hashed into a table of ``2 T`` slots (rounded up to a power of two) and the triangles
-are sorted by slot, so each slot's entries are one contiguous run. A vertex box
+is hashed into a table of ``max(2 T, 27 P)`` slots (a power of two; the second term at
+most :data:`_TABLE_CAP`: a query of an empty cell rarely meets another cell's entries) and
+the triangles are sorted by slot, so each slot's entries are one contiguous run. A vertex box
 ``[lo, hi]`` can only meet triangles whose lower corner lies in ``[lo - e_t, hi]``, an
 interval shorter than ``2 h_k``: at most 3 cells per axis, the up-to-27 neighbouring cells.
 Every (vertex, cell) *segment* contributes the entries of its slot, and the segments'
@@ -76,6 +77,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+#: The largest hash table the number of queried cells asks for (slots; 1 MB of counts).
+_TABLE_CAP = 2 ** 18
 #: The 27 cell offsets of a vertex's query block (0..2 on each axis from its lowest cell).
 _OFFSETS = np.array([(i, j, k) for i in range(3) for j in range(3) for k in range(3)], np.int32)
 _INT32_MAX = np.iinfo(np.int32).max
@@ -190,7 +193,10 @@ def _prepare(x0, x1, points, triangles, groups, allowed) -> _Static:
         else:  # many partners: one key group, bodies filtered per test
             tri_key, partners = np.zeros(len(tri), np.int32), np.zeros((len(pts), 1), np.int32)
             per_test = not allow.all()
-    size = 1 << max(1, int(np.ceil(np.log2(max(2 * len(tri), 2)))))
+    # at least as many slots as queried cells (27 per point and partner, up to _TABLE_CAP):
+    # an empty cell's query then rarely lands on an occupied slot, whose entries it would test
+    segments = min(27 * len(pts) * partners.shape[1], _TABLE_CAP)
+    size = 1 << max(1, int(np.ceil(np.log2(max(2 * len(tri), segments, 2)))))
     return _Static(n, pts.astype(np.int32), tri.astype(np.int32), tri_key.astype(np.int32),
                    partners.astype(np.int32), size, allow, point_body, tri_body, per_test)
 

@@ -111,12 +111,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from softbody._interfaces import Capabilities, ContactSweep, Coordinates, Frame
+from softbody._interfaces import Capabilities, ContactSweep, Coordinates
 from softbody.contact import anderson
 from softbody.contact.active_set import ActiveSet
 from softbody.contact.fixed_point import closure_convert, fixed_point
 from softbody.contact.law import (_FAR, CONTACT_STATES, SLIDING_SPEED, _contact_state, _contact_step, _pair_update,
-                                  _positions, _spread, _tangential)
+                                  _positions, _sliding, _spread, _tangential)
 from softbody.contact.obstacles import norm
 from softbody.contact.rows import _frames, _Pairs
 from softbody.contact.splitting import Naive, ScaledDiagonal, Splitting
@@ -341,6 +341,7 @@ class Contact:
             def compliance(count):
                 return c * count
         parts_count = int(body.max()) + 1 if n else 0
+        sliding = _sliding(pairs.frame(problem.x_n), problem.v_n) if m else None
         earlier = np.tril(np.ones((4, 4), bool), -1)  # [j, i]: slot i comes before slot j
 
         def split(pair):
@@ -372,7 +373,7 @@ class Contact:
                     x_new, force = carry
                     z = _positions(x_new, n)
                     pair = pairs.frame(z)
-                    force_new = _pair_update(pair, force, z, problem.x_n, problem.v_n, h, split(pair))
+                    force_new = _pair_update(pair, force, z, problem.x_n, problem.v_n, h, split(pair), sliding)
                     delta = _spread(pair, force_new - force, n)
                     if parts.rigid is None:
                         return (x_new.at[:n].add(touching * delta / p), force_new), None
@@ -409,10 +410,12 @@ class Contact:
 
         def law(y, index, valid, kinetic=False):
             frame = _frames(problem.rows, y, index, t_end)
-            if kinetic:  # vertices sliding at the step's start meet the kinetic cone only
-                phi, normal, vel, mu_s, mu_k, e = frame
-                moving = norm(_tangential(problem.v_n[index] - vel, normal)) > SLIDING_SPEED
-                frame = Frame(phi, normal, vel, jnp.where(moving, mu_k, mu_s), mu_k, e)
+            if kinetic:  # one cone a step: the kinetic one where sliding at the step's start (law.SLIDING_SPEED),
+                # measured in the start's frame (the iterate's normal would let a vertex change class)
+                start = _frames(problem.rows, problem.x_n[index], index, problem.time)
+                moving = norm(_tangential(problem.v_n[index] - start.velocity, start.normal)) > SLIDING_SPEED
+                mu = jnp.where(moving, frame.mu_k, frame.mu_s)
+                frame = frame._replace(mu_s=mu, mu_k=mu)
             touching, stick, correction = _contact_state(
                 y, problem.x_n[index], problem.v_n[index], h, frame, valid[:, None].astype(y.dtype))
             return touching, stick, correction, frame[1]

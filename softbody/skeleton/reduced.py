@@ -259,9 +259,8 @@ class Reduced(Coordinates):
             # Gershgorin bound from |W_ij| <= sqrt(W_ii W_jj), per tree), so that the sweeps
             # converge for frictionless contact as the splitting does. At a fixed point the
             # body is in equilibrium with the forces, and each skin vertex satisfies the
-            # contact law (on the surface, inside the cone, sliding against its slip, the
-            # static cone's threshold measured with 1 / w_i as the splitting measures it with
-            # P; a skin vertex sliding at the step's start meets the kinetic cone only, see
+            # contact law (on the surface, inside the cone, sliding against its slip; one cone
+            # a step, the kinetic one where the vertex slides at the step's start, see
             # softbody.contact.law.SLIDING_SPEED): the fixed point does not depend on the bound.
             root = jnp.sqrt(delassus_diagonal(b_skin, k_inv))  # (c, 3)
 
