@@ -89,12 +89,18 @@ def _check_sheet(triangles: np.ndarray) -> None:
         raise SceneError(f"Membrane: {int(np.sum(counts > 1))} triangles are given more than once, e.g. "
                          f"{twice.tolist()} ({counts.max()} times), which would count their stiffness and mass "
                          "as often; give each triangle once")
+    _check_manifold(tri, "Membrane: ", "give each sheet meeting there its own Membrane (and Bending)")
+
+
+def _check_manifold(tri: np.ndarray, owner: str, fix: str) -> None:
+    """Raise a :class:`SceneError` starting with ``owner`` and ending with ``fix`` where an edge
+    belongs to more than two of the triangles ``tri`` ``(m, 3)``."""
     edges = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)
     key, counts = np.unique(edges, axis=0, return_counts=True)
-    if counts.max() > 2:
-        raise SceneError(f"Membrane: the triangles are not a manifold surface: {int(np.sum(counts > 2))} edges are "
+    if counts.max(initial=0) > 2:
+        raise SceneError(f"{owner}the triangles are not a manifold surface: {int(np.sum(counts > 2))} edges are "
                          f"shared by more than two triangles, e.g. edge {key[np.argmax(counts)].tolist()} by "
-                         f"{counts.max()}; give each sheet meeting there its own Membrane (and Bending)")
+                         f"{counts.max()}; {fix}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -249,10 +255,7 @@ def hinges(triangles: np.ndarray) -> np.ndarray:
     key = np.sort(sides[:, :2], axis=1)
     _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
     inverse = inverse.ravel()
-    if counts.max(initial=0) > 2:
-        bad = key[np.flatnonzero(counts[inverse] > 2)[0]]
-        raise SceneError(f"the triangles are not a manifold surface: edge {bad.tolist()} is shared by "
-                         f"{counts.max()} triangles; bend each sheet separately")
+    _check_manifold(tri, "", "bend each sheet separately")
     order = np.argsort(inverse, kind="stable")
     pair = order[np.flatnonzero(counts[inverse[order]] == 2)].reshape(-1, 2)
     first, second = sides[pair[:, 0]], sides[pair[:, 1]]

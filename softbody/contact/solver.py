@@ -341,7 +341,8 @@ class Contact:
             def compliance(count):
                 return c * count
         parts_count = int(body.max()) + 1 if n else 0
-        sliding = _sliding(pairs.frame(problem.x_n), problem.v_n) if m else None
+        start = pairs.frame(problem.x_n) if m else None  # the rows at the step's start
+        sliding = _sliding(start, problem.v_n) if m else None
         earlier = np.tril(np.ones((4, 4), bool), -1)  # [j, i]: slot i comes before slot j
 
         def split(pair):
@@ -394,7 +395,7 @@ class Contact:
         if extra:
             weight = jnp.concatenate([weight, jnp.broadcast_to(jnp.sqrt(parts.scale), (extra, 3)).ravel()])
         if m:  # a force row weighs as its touching vertex's compliance (force / sqrt(P): sqrt(N m))
-            touching_vertex = pairs.frame(problem.x_n).vertices[:, 0]
+            touching_vertex = start.vertices[:, 0]
             weight = jnp.concatenate([weight, jnp.repeat(1.0 / jnp.sqrt(p[touching_vertex, 0]), 3)])
 
         def lift(x):
@@ -407,14 +408,16 @@ class Contact:
         """The per-vertex contact step on some vertices, as :class:`~softbody.contact.active_set.ActiveSet` takes it."""
         h = problem.dt
         t_end = problem.time + h
+        # one cone a step for kinetic=True: the kinetic one where a vertex slides at the step's
+        # start (law.SLIDING_SPEED), measured once, in the start's frame (the iterate's normal
+        # would let a vertex change class within the step)
+        start = _frames(problem.rows, problem.x_n, jnp.arange(problem.x_n.shape[0]), problem.time)
+        moving = norm(_tangential(problem.v_n - start.velocity, start.normal)) > SLIDING_SPEED
 
         def law(y, index, valid, kinetic=False):
             frame = _frames(problem.rows, y, index, t_end)
-            if kinetic:  # one cone a step: the kinetic one where sliding at the step's start (law.SLIDING_SPEED),
-                # measured in the start's frame (the iterate's normal would let a vertex change class)
-                start = _frames(problem.rows, problem.x_n[index], index, problem.time)
-                moving = norm(_tangential(problem.v_n[index] - start.velocity, start.normal)) > SLIDING_SPEED
-                mu = jnp.where(moving, frame.mu_k, frame.mu_s)
+            if kinetic:
+                mu = jnp.where(moving[index], frame.mu_k, frame.mu_s)
                 frame = frame._replace(mu_s=mu, mu_k=mu)
             touching, stick, correction = _contact_state(
                 y, problem.x_n[index], problem.v_n[index], h, frame, valid[:, None].astype(y.dtype))
