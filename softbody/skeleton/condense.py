@@ -57,7 +57,9 @@ class SchurFactor(eqx.Module):
 
 def _features(rig: Rig) -> np.ndarray:
     """``F = [E, E * X]`` ``(n_b, 4L)``: link indicator and rest positions per link."""
-    e, x = rig.vertex_one_hot, rig.rest
+    x = rig.rest
+    e = np.zeros((len(x), len(rig.links)))
+    e[np.arange(len(x)), rig.vertex_link] = 1.0
     return np.concatenate([e, (e[:, :, None] * x[:, None, :]).reshape(len(x), -1)], axis=1)
 
 
@@ -104,7 +106,7 @@ def schur_factor(solver, pattern, data: Array, rig: Rig) -> SchurFactor:
                        jnp.asarray(np.append(pattern.cols[rf], 0)[table]), solver, pattern)
 
 
-def _link_motions(pose: Pose, move: Array) -> Array:
+def _link_motions(rig: Rig, pose: Pose, move: Array) -> Array:
     """``G`` ``(4L, 3, n_dofs)``: the motion of every link per unit of each dof, in the layout
     of the features ``F`` (:class:`SchurFactor`), so that ``B d_z = F (G d_z)`` link by link.
 
@@ -113,7 +115,12 @@ def _link_motions(pose: Pose, move: Array) -> Array:
     (column ``j`` of ``M`` in row ``L + 3 l + j``). Held dofs (``move = 0``) get zero columns.
     The cross products are spelled out by component (XLA's batched tiny matmuls are slower).
     """
-    twists = pose.twists * move
+    n_links, k = len(rig.links), rig.n_dofs
+    local = pose.twists * rig.blocks(move)[rig.tree_index][:, None, :]  # (L, 6, K)
+    slots = rig.tree_dofs[rig.tree_index]  # (L, K)
+    twists = jnp.zeros((n_links, k + 1, 6), local.dtype).at[jnp.arange(n_links)[:, None], slots].set(
+        jnp.swapaxes(local, 1, 2))
+    twists = jnp.swapaxes(twists, 1, 2)[:, :, :k]  # (L, 6, k)
     a, w = twists[:, :3], twists[:, 3:]  # (L, 3, k)
 
     def cross(u):  # w x u for one vector u (L, 3) per link: (L, 3, k)
@@ -122,7 +129,6 @@ def _link_motions(pose: Pose, move: Array) -> Array:
                           w[:, 0] * u[:, 1] - w[:, 1] * u[:, 0]], axis=1)
 
     m = jnp.stack([cross(pose.r[:, :, j]) for j in range(3)], axis=1)  # (L, j, 3, k)
-    n_links, _, k = twists.shape
     return jnp.concatenate([a + cross(pose.p), m.reshape(3 * n_links, 3, k)])  # explicit: k may be 0
 
 
@@ -139,7 +145,7 @@ def _solve_reduced(factor: SchurFactor, rig: Rig, pose: Pose, g_f: Array, g_z: A
     """Solve the reduced PD system for the right-hand side ``(g_f, g_z)`` (``g_f`` ``(n, 3)``
     with zero bone rows, ``g_z`` ``(n_dofs,)``); see :func:`schur_direction`."""
     move = 1.0 - locked
-    motion = _link_motions(pose, move)  # (4L, 3, k)
+    motion = _link_motions(rig, pose, move)  # (4L, 3, k)
     v = factor.solve_ff(g_f)  # Q_ff^-1 g_f, zero bone rows
     rhs = (g_z - rig.reduce(pose, factor.q_rf(v))) * move
     rows, _, k = motion.shape  # explicit shapes: k may be 0

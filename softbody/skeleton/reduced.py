@@ -150,6 +150,11 @@ class Reduced(Coordinates):
         index = jnp.asarray(owners)
         tree = jnp.asarray(rig.tree[rig.vertex_link[skin]])
         valid = problem.free[index, 0] > 0
+        # The skeleton's small solves go tree by tree (Rig.tree_dofs): nothing couples two
+        # trees' dofs in K = B^T P_b B, so each is one K x K block (6 x 6 for a free rigid
+        # body) and the cost grows with the number of trees, not with its cube.
+        vertex_tree, skin_tree = jnp.asarray(rig.vertex_tree), jnp.asarray(rig.vertex_tree[skin])
+        n_trees = len(rig.tree_dofs)
 
         def place(x):
             x = x if x.shape[0] == n else x[:n]
@@ -157,23 +162,41 @@ class Reduced(Coordinates):
             pose = rig.pose(z)
             return x.at[bone].set(pose.x), (z, pose)
 
-        def inverse(jac, move):
-            """``K^-1`` of the sweep's block ``K = B^T P_b B``, zero on the held dofs."""
-            mask = move[:, None] * move[None, :]
-            k_z = jnp.einsum("vik,v,vil->kl", jac, p_bone, jac) * mask
-            return jnp.linalg.inv(k_z + jnp.diag(1.0 - move)) * mask
+        def stiffness(jac):
+            """The sweep's block ``K = B^T P_b B`` by trees, ``(T, K, K)``, from the
+            Jacobian by trees ``jac`` ``(n_b, 3, K)`` (:meth:`Rig.local_jacobian`)."""
+            return jax.ops.segment_sum(jnp.einsum("vik,v,vil->vkl", jac, p_bone, jac), vertex_tree, n_trees)
+
+        def inverse(k_z, move):
+            """``K^-1`` by trees ``(T, K, K)``, zero on the held dofs and padding slots
+            (``move`` ``(T, K)``, :meth:`Rig.blocks`)."""
+            mask = move[:, :, None] * move[:, None, :]
+            eye = jnp.eye(k_z.shape[-1], dtype=k_z.dtype)
+            return jnp.linalg.inv(k_z * mask + eye * (1.0 - move)[:, :, None]) * mask
+
+        def times(k_inv, b):
+            """``K^-1 b`` by trees: ``(T, K)``."""
+            return jnp.einsum("tkl,tl->tk", k_inv, b)
+
+        def motion(jac, d, trees):
+            """``B d``: the vertices' motion ``(v, 3)`` for the tree steps ``d`` ``(T, K)``."""
+            return jnp.einsum("vik,vk->vi", jac, d[trees])
+
+        def skin_load(b_skin, force):
+            """``B_C^T f`` by trees ``(T, K)``: the skin's forces ``f`` ``(c, 3)`` as generalised forces."""
+            return jax.ops.segment_sum(jnp.einsum("cik,ci->ck", b_skin, force), skin_tree, n_trees)
 
         def delassus_diagonal(b_skin, k_inv):
             """``(c, 3)`` the diagonal of ``W = B_C K^-1 B_C^T`` (the skin's Delassus operator)."""
-            return jnp.maximum(jnp.einsum("cik,kl,cil->ci", b_skin, k_inv, b_skin), 0.0)
+            return jnp.maximum(jnp.einsum("cik,ckl,cil->ci", b_skin, k_inv[skin_tree], b_skin), 0.0)
 
         def forces(x):
             return scale * x[n:]
 
         # Pair rows on bone vertices: each skin vertex's Delassus diagonal at the step's
         # start (mean over the axes), shared among the rows on its tree.
-        jac_n = rig._jacobian(rig.pose(rig.coordinates(problem.x_n[bone])))
-        w_n = delassus_diagonal(jac_n[skin], inverse(jac_n, jnp.ones(rig.n_dofs, p.dtype)))  # (c, 3)
+        jac_n = rig.local_jacobian(rig.pose(rig.coordinates(problem.x_n[bone])))
+        w_n = delassus_diagonal(jac_n[skin], inverse(stiffness(jac_n), rig.blocks(jnp.ones(rig.n_dofs, p.dtype))))
         soft = problem.free * (1.0 - rig.is_bone)
         compliance = (soft / p).at[index].set(w_n.mean(axis=1)[:, None])
         body = np.arange(n)
@@ -204,25 +227,26 @@ class Reduced(Coordinates):
             respond to their change, so that a part's pair rows and obstacle rows relax
             together (a soft body on a rigid box on the ground)."""
             z, pose = aux
-            jac = rig._jacobian(pose)
+            jac = rig.local_jacobian(pose)
+            k_z = stiffness(jac)
             if len(skin):
                 value = rig.joint_values(z)
                 free_dofs = 1.0 - ((value <= jnp.asarray(rig.lower)) | (value >= jnp.asarray(rig.upper))).astype(
                     p.dtype)
-                k_free = inverse(jac, free_dofs)  # joints at a limit held while the skin relaxes
+                k_free = inverse(k_z, rig.blocks(free_dofs))  # joints at a limit held while the skin relaxes
                 root = jnp.sqrt(delassus_diagonal(jac[skin], k_free))
 
             def move_by(x, force):
                 g_z = -rig.reduce(pose, force[bone])
                 move = 1.0 - _held(rig, z, g_z)
-                shift = jnp.einsum("vik,k->vi", jac, inverse(jac, move) @ (-g_z))
+                shift = motion(jac, times(inverse(k_z, rig.blocks(move)), rig.blocks(-g_z)), vertex_tree)
                 x = x.at[:n].add(soft * force / p).at[bone].add(shift)
                 if not len(skin):
                     return x
                 old = forces(x)
                 new = skin_update(x[index], old, root)
-                pushed = rig.reduce(pose, jnp.zeros((len(rig.bone), 3), p.dtype).at[skin].add(new - old))
-                return x.at[bone].add(jnp.einsum("vik,k->vi", jac, k_free @ pushed)).at[n:].set(new / scale)
+                pushed = skin_load(jac[skin], new - old)
+                return x.at[bone].add(motion(jac, times(k_free, pushed), vertex_tree)).at[n:].set(new / scale)
 
             return move_by
 
@@ -231,11 +255,10 @@ class Reduced(Coordinates):
         if not len(skin):
             def sweep(x, x_new, g, aux):
                 z, pose = aux
-                jac = rig._jacobian(pose)  # (n_b, 3, k)
+                jac = rig.local_jacobian(pose)  # (n_b, 3, K)
                 g_z = rig.reduce(pose, g[bone])
                 move = 1.0 - _held(rig, z, g_z)
-                k_z = jnp.einsum("vik,v,vil->kl", jac, p_bone, jac) * move[:, None] * move[None, :]
-                d_z = jnp.linalg.solve(k_z + jnp.diag(1.0 - move), g_z * move)
+                d_z = rig.unblock(times(inverse(stiffness(jac), rig.blocks(move)), rig.blocks(g_z * move)))
                 return x_new.at[bone].set(rig.positions(rig.retract(z, -d_z))), g_z * move
 
             scale = jnp.zeros((0, 1), p.dtype)
@@ -244,12 +267,12 @@ class Reduced(Coordinates):
         def sweep(x, x_new, g, aux):
             z, pose = aux
             force = forces(x)  # (c, 3) contact forces on the skin
-            jac = rig._jacobian(pose)
+            jac = rig.local_jacobian(pose)
             b_skin = jac[skin]
-            g_z = rig.reduce(pose, g[bone])
-            net = g_z - jnp.einsum("cik,ci->k", b_skin, force)
+            g_z = rig.blocks(rig.reduce(pose, g[bone]))  # (T, K)
+            net = rig.unblock(g_z - skin_load(b_skin, force))
             move = 1.0 - _held(rig, z, net)
-            k_inv = inverse(jac, move)
+            k_inv = inverse(stiffness(jac), rig.blocks(move))
             # The contact forces by relaxed projected Jacobi sweeps on the Delassus operator
             # W (the body's motion linearised): each skin vertex takes the per-vertex contact
             # step, with the effective mass 1 / w_i of its diagonal block (w_i its mean
@@ -265,12 +288,11 @@ class Reduced(Coordinates):
             root = jnp.sqrt(delassus_diagonal(b_skin, k_inv))  # (c, 3)
 
             def update(force, _):
-                moved = pose.x[skin] - jnp.einsum("cik,k->ci", b_skin,
-                                                  k_inv @ (g_z - jnp.einsum("cik,ci->k", b_skin, force)))
+                moved = pose.x[skin] - motion(b_skin, times(k_inv, g_z - skin_load(b_skin, force)), skin_tree)
                 return skin_update(moved, force, root), None
 
             force_new, _ = jax.lax.scan(update, force, None, length=self.contact_sweeps)
-            d_z = k_inv @ (g_z - jnp.einsum("cik,ci->k", b_skin, force_new))
+            d_z = rig.unblock(times(k_inv, g_z - skin_load(b_skin, force_new)))
             placed = x_new.at[bone].set(rig.positions(rig.retract(z, -d_z)))
             residual = jnp.concatenate([net * move, (force_new - force).ravel()])
             return jnp.concatenate([placed, force_new / scale]), residual

@@ -91,24 +91,26 @@ def _skew(w):
 
 
 def _quat_mul(a, b):
-    w1, x1, y1, z1 = a
-    w2, x2, y2, z2 = b
-    return jnp.array([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                      w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2])
+    """Products ``a b`` of quaternions ``(..., 4)`` ``(w, x, y, z)``."""
+    w1, x1, y1, z1 = jnp.moveaxis(a, -1, 0)
+    w2, x2, y2, z2 = jnp.moveaxis(b, -1, 0)
+    return jnp.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                      w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], axis=-1)
 
 
 def _quat_exp(phi):
-    """Unit quaternion of the rotation vector ``phi`` (3,), smooth at 0."""
-    half2 = 0.25 * jnp.sum(phi * phi)  # (angle / 2)^2
+    """Unit quaternions ``(..., 4)`` of the rotation vectors ``phi`` ``(..., 3)``, smooth at 0."""
+    half2 = 0.25 * jnp.sum(phi * phi, axis=-1)  # (angle / 2)^2
     small = half2 < 1e-8
     half = jnp.sqrt(jnp.where(small, 1.0, half2))
     sinc = jnp.where(small, 0.5 - half2 / 12.0, 0.5 * jnp.sin(half) / half)
     cos = jnp.where(small, 1.0 - 0.5 * half2, jnp.cos(half))
-    return jnp.concatenate([cos[None], sinc * phi])
+    return jnp.concatenate([cos[..., None], sinc[..., None] * phi], axis=-1)
 
 
 def _quat_matrix(q):
-    return rot.quat_to_mat(q[:, None])[:, :, 0]
+    """Rotation matrices ``(F, 3, 3)`` of unit quaternions ``(F, 4)``."""
+    return jnp.moveaxis(rot.quat_to_mat(q.T), -1, 0)
 
 
 class Pose(NamedTuple):
@@ -118,9 +120,12 @@ class Pose(NamedTuple):
         r: ``(L, 3, 3)`` link rotations; p: ``(L, 3)`` translations (rest ``X`` maps to
             ``r[l] X + p[l]``).
         x: ``(n_b, 3)`` bone vertex positions.
-        twists: ``(L, 6, n_dofs)`` the world twist ``(u, w)`` of each dof as it moves link
-            ``l`` (zero where the dof's joint is not ``l`` or an ancestor of it): a bone
-            vertex ``x`` of link ``l`` moves by ``u + w x x`` per unit of the dof.
+        twists: ``(L, 6, K)`` the world twist ``(u, w)`` of each dof of link ``l``'s tree
+            as it moves link ``l``, in the tree's slots (:attr:`Rig.tree_dofs`; zero where
+            the dof's joint is not ``l`` or an ancestor of it, and on padding slots): a bone
+            vertex ``x`` of link ``l`` moves by ``u + w x x`` per unit of the dof. ``K`` is
+            the most dofs of one tree, so the twists grow with the number of links, not
+            with the links times the dofs.
     """
 
     r: Array
@@ -150,6 +155,13 @@ class Rig:
         skin: ``(c,)`` indices into :attr:`bone` of the bone vertices that touch obstacles:
             those on the mesh's surface, on links that some dof moves.
         tree: ``(L,)`` the root link of each link's tree.
+        tree_index: ``(L,)`` the index of each link's tree (``0 .. T - 1``, the trees in the
+            order of their roots).
+        tree_dofs: ``(T, K)`` each tree's dofs (tangent indices, in order), padded with
+            ``n_dofs``; ``K`` is the most dofs of one tree. Nothing couples two trees'
+            dofs kinematically, so blocks of this layout (:meth:`blocks`) make the skeleton's
+            small solves one ``K x K`` system per tree (free rigid bodies: ``6 x 6`` each).
+        vertex_tree: ``(n_b,)`` the tree index of each bone vertex.
         detached_dofs: ``(n_dofs,)`` 1.0 on the dofs of free bodies (a :class:`Free` root
             with no children whose vertices are in no tet: a rigid body), else 0.0.
         n_vertices: vertices of the mesh.
@@ -230,21 +242,34 @@ class Rig:
         for i in range(n_links):
             root[i] = i if parent[i] < 0 else root[parent[i]]
         moved_link = np.array([n_dofs[j] > 0 for j in range(n_links)]) @ ancestor.T > 0
+        roots, tree_index = np.unique(root, return_inverse=True)
+        tree_members = [np.concatenate([np.arange(dof_start[i], dof_start[i + 1]) for i in np.flatnonzero(root == r)])
+                        for r in roots]
+        width = max([len(d) for d in tree_members] + [0])
+        tree_dofs = np.full((len(roots), width), int(dof_start[-1]), np.int64)
+        for t, members in enumerate(tree_members):
+            tree_dofs[t, :len(members)] = members
+        # moves[l, s]: the dof in slot s of link l's tree moves link l (its joint is l or an ancestor)
+        moves = np.concatenate([ancestor[:, dof_link], np.zeros((n_links, 1), bool)], axis=1)
+        local_moves = np.take_along_axis(moves, tree_dofs[tree_index], axis=1).astype(np.float64)
+        free = np.array([i for i, link in enumerate(links) if isinstance(link.joint, Free)], np.int64)
         all_bone = np.concatenate(bone)
         skin = np.flatnonzero(np.isin(all_bone, np.asarray(mesh.surface)) & moved_link[vertex_link])
-        one_hot = np.zeros((len(vertex_link), n_links))
-        one_hot[np.arange(len(vertex_link)), vertex_link] = 1.0
         for name, value in dict(
                 bone=np.concatenate(bone).astype(np.int32), vertex_link=vertex_link,
-                rest=mesh.points[np.concatenate(bone)], centres=centres, parent=parent,
+                rest=mesh.points[np.concatenate(bone)], parent=parent,
                 coord_start=coord_start, dof_start=dof_start,
-                moves=ancestor[:, dof_link].astype(np.float64), vertex_one_hot=one_hot,
+                moves=local_moves, link_count=np.bincount(vertex_link, minlength=n_links).astype(np.float64),
+                rest_mean=np.stack([mesh.points[v].mean(axis=0) for v in bone]),
                 levels=[np.flatnonzero(depth == d) for d in range(1, int(depth.max()) + 1)],
-                free_links=[i for i, link in enumerate(links) if isinstance(link.joint, Free)],
+                free_links=free, free_coords=coord_start[free][:, None] + np.arange(7),
+                free_dofs=dof_start[free][:, None] + np.arange(6),
+                free_centres=np.array([centres[i] for i in free], np.float64).reshape(-1, 3),
                 scalar_links=scalar, scalar_coords=coord_start[scalar], scalar_dofs=dof_start[scalar],
                 rot_axis=rot_axis, slide_axis=slide_axis, origin=origin,
                 lower=lo, upper=hi, n_vertices=mesh.n_vertices, detached_dofs=np.repeat(detached, n_dofs).astype(float),
-                skin=skin, tree=root,
+                skin=skin, tree=root, tree_index=tree_index, tree_dofs=tree_dofs,
+                vertex_tree=tree_index[vertex_link],
                 is_bone=np.isin(np.arange(mesh.n_vertices), np.concatenate(bone))[:, None].astype(float)).items():
             object.__setattr__(self, name, value)
 
@@ -301,11 +326,12 @@ class Rig:
              + (1.0 - jnp.cos(theta))[:, None, None] * (k @ k))  # Rodrigues; identity off revolute joints
         origin = jnp.asarray(self.origin)
         p = origin - jnp.einsum("lij,lj->li", r, origin) + theta[:, None] * jnp.asarray(self.slide_axis)
-        for i in self.free_links:
-            c = z[self.coord_start[i]:self.coord_start[i + 1]]
-            ri = _quat_matrix(c[3:] / jnp.linalg.norm(c[3:]))
-            centre = jnp.asarray(self.centres[i])
-            r, p = r.at[i].set(ri), p.at[i].set(centre + c[:3] - ri @ centre)
+        if len(self.free_links):  # all Free joints at once (they are roots)
+            c = z[self.free_coords]  # (F, 7)
+            ri = _quat_matrix(c[:, 3:] / jnp.linalg.norm(c[:, 3:], axis=1, keepdims=True))
+            centre = jnp.asarray(self.free_centres)
+            r = r.at[self.free_links].set(ri)
+            p = p.at[self.free_links].set(centre + c[:, :3] - jnp.einsum("fij,fj->fi", ri, centre))
         for idx in self.levels:
             par = self.parent[idx]
             r_par, p_par = r[par], p[par]
@@ -339,41 +365,65 @@ class Rig:
         w = jnp.einsum("lij,lj->li", r_par, jnp.asarray(self.rot_axis))
         u = (-jnp.cross(w, jnp.einsum("lij,lj->li", r_par, jnp.asarray(self.origin)) + p_par)
              + jnp.einsum("lij,lj->li", r_par, jnp.asarray(self.slide_axis)))
-        twist = jnp.zeros((k, 6))
+        twist = jnp.zeros((k + 1, 6))  # a zero row for the padding slots of tree_dofs
         if len(self.scalar_links):
             twist = twist.at[self.scalar_dofs].set(jnp.concatenate([u, w], axis=1)[self.scalar_links])
-        for i in self.free_links:
-            c = z[self.coord_start[i]:self.coord_start[i] + 3] + jnp.asarray(self.centres[i])
-            eye = jnp.eye(3)
-            block = jnp.concatenate([jnp.concatenate([eye, jnp.zeros((3, 3))], axis=1),
-                                     jnp.concatenate([-jnp.cross(eye, c), eye], axis=1)])
-            twist = twist.at[self.dof_start[i]:self.dof_start[i] + 6].set(block)
-        twists = jnp.asarray(self.moves)[:, None, :] * twist.T[None]
+        if len(self.free_links):
+            c = z[self.free_coords[:, :3]] + jnp.asarray(self.free_centres)  # (F, 3) world centres
+            eye = jnp.broadcast_to(jnp.eye(3), (len(c), 3, 3))
+            block = jnp.concatenate([jnp.concatenate([eye, jnp.zeros_like(eye)], axis=2),
+                                     jnp.concatenate([-jnp.cross(eye, c[:, None, :]), eye], axis=2)], axis=1)
+            twist = twist.at[self.free_dofs].set(block)
+        twists = jnp.asarray(self.moves)[:, None, :] * jnp.swapaxes(twist[self.tree_dofs[self.tree_index]], 1, 2)
         return Pose(r, p, self._place(r, p), twists)
 
     def jacobian(self, z: Array) -> Array:
         """``B = dx_bone/dz`` in tangent coordinates, shape ``(n_b, 3, n_dofs)``.
 
         Column ``k`` is the world twist ``(u_k, w_k)`` of dof ``k`` applied to the vertices
-        it moves: ``B[v, :, k] = u_k + w_k x x_v``.
+        it moves: ``B[v, :, k] = u_k + w_k x x_v``. Dense: the solves use the blocks of
+        :meth:`local_jacobian` instead.
         """
-        return self._jacobian(self.pose(z))
+        local = self.local_jacobian(self.pose(z))
+        dense = jnp.zeros((len(self.bone), 3, self.n_dofs + 1), local.dtype)
+        rows = jnp.arange(len(self.bone))[:, None, None]
+        dense = dense.at[rows, jnp.arange(3)[None, :, None], self.tree_dofs[self.vertex_tree][:, None, :]].set(local)
+        return dense[:, :, :-1]
 
-    def _jacobian(self, pose: Pose) -> Array:
-        t = pose.twists[jnp.asarray(self.vertex_link)]  # (n_b, 6, k)
+    def local_jacobian(self, pose: Pose) -> Array:
+        """``B`` by trees: ``(n_b, 3, K)``, row ``v`` over the slots of vertex ``v``'s tree
+        (:attr:`tree_dofs`; zero on padding slots)."""
+        t = pose.twists[jnp.asarray(self.vertex_link)]  # (n_b, 6, K)
         return t[:, :3] - jnp.einsum("vij,vjk->vik", _skew(pose.x), t[:, 3:])
+
+    def blocks(self, v: Array) -> Array:
+        """A tangent vector ``(n_dofs,)`` by trees: ``(T, K)``, zero on padding slots."""
+        return jnp.concatenate([v, jnp.zeros(1, v.dtype)])[self.tree_dofs]
+
+    def unblock(self, b: Array) -> Array:
+        """The inverse of :meth:`blocks`: ``(T, K)`` to ``(n_dofs,)`` (padding slots dropped)."""
+        return jnp.zeros(self.n_dofs + 1, b.dtype).at[self.tree_dofs].set(b)[:-1]
 
     def reduce(self, pose: Pose, force: Array) -> Array:
         """``B^T f``: the generalised force ``(n_dofs,)`` of bone-vertex forces ``f`` ``(n_b, 3)``.
 
-        Summed per link as a wrench (force, moment about the origin), then mapped by the
-        twists; no ``(n_b, 3, n_dofs)`` Jacobian is formed.
+        Summed per link as a wrench (force, and moment about the link's centroid ``c``, so
+        that a body far from the origin loses no digits to the moment's cancellation), then
+        mapped by the twists moved to ``c`` (``u + w x c``, ``w``); no ``(n_b, 3, n_dofs)``
+        Jacobian is formed, and the cost is linear in the links.
         """
-        one_hot = jnp.asarray(self.vertex_one_hot)
-        moment = jnp.concatenate([force, jnp.cross(pose.x, force)], axis=1)  # (n_b, 6)
-        # Column by column: matrix-vector products took half the time of one (L, n_b) x (n_b, 6) product.
-        wrench = jnp.stack([one_hot.T @ m for m in moment.T], axis=1)  # (L, 6)
-        return wrench.reshape(-1) @ pose.twists.reshape(wrench.size, -1)
+        link = jnp.asarray(self.vertex_link)
+
+        def per_link(a):
+            return jax.ops.segment_sum(a, link, len(self.links), indices_are_sorted=True)
+
+        centre = per_link(pose.x) / self.link_count[:, None]  # (L, 3)
+        net, moment = per_link(force), per_link(jnp.cross(pose.x - centre[link], force))
+        u, w = pose.twists[:, :3], pose.twists[:, 3:]  # (L, 3, K)
+        u_centre = u + jnp.cross(w, centre[:, :, None], axis=1)
+        per_dof = jnp.einsum("li,lik->lk", net, u_centre) + jnp.einsum("li,lik->lk", moment, w)  # (L, K)
+        slots = self.tree_dofs[self.tree_index]
+        return jnp.zeros(self.n_dofs + 1, per_dof.dtype).at[slots].add(per_dof)[:-1]
 
     def retract(self, z: Array, dz: Array) -> Array:
         """Move ``z`` by the tangent step ``dz`` ``(n_dofs,)`` and stay on the manifold.
@@ -386,10 +436,11 @@ class Rig:
             value = jnp.clip(z[self.scalar_coords] + dz[self.scalar_dofs],
                              self.lower[self.scalar_dofs], self.upper[self.scalar_dofs])
             z = z.at[self.scalar_coords].set(value)
-        for i in self.free_links:
-            c, d = self.coord_start[i], dz[self.dof_start[i]:self.dof_start[i] + 6]
-            q = _quat_mul(_quat_exp(d[3:]), z[c + 3:c + 7])
-            z = z.at[c:c + 7].set(jnp.concatenate([z[c:c + 3] + d[:3], q / jnp.linalg.norm(q)]))
+        if len(self.free_links):
+            c, d = z[self.free_coords], dz[self.free_dofs]  # (F, 7), (F, 6)
+            q = _quat_mul(_quat_exp(d[:, 3:]), c[:, 3:])
+            z = z.at[self.free_coords].set(
+                jnp.concatenate([c[:, :3] + d[:, :3], q / jnp.linalg.norm(q, axis=1, keepdims=True)], axis=1))
         return z
 
     def step_taken(self, z: Array, z_new: Array, dz: Array) -> Array:
@@ -408,14 +459,17 @@ class Rig:
         each link relative to its parent's. Exact (to round-off) for positions produced by
         :meth:`positions`; revolute angles come back in ``(-pi, pi]``.
         """
-        one_hot = jnp.asarray(self.vertex_one_hot)
         n_links = len(self.links)
-        count = self.vertex_one_hot.sum(axis=0)[:, None]
+        count = self.link_count[:, None]
         rest = jnp.asarray(self.rest)
-        xm = one_hot.T @ x_bone / count
-        rm = jnp.asarray(self.vertex_one_hot.T @ self.rest / count)
         link = jnp.asarray(self.vertex_link)
-        h = jnp.einsum("vl,vi,vj->lij", one_hot, x_bone - xm[link], rest - rm[link])
+
+        def per_link(a):
+            return jax.ops.segment_sum(a, link, n_links, indices_are_sorted=True)
+
+        xm = per_link(x_bone) / count
+        rm = jnp.asarray(self.rest_mean)
+        h = per_link(jnp.einsum("vi,vj->vij", x_bone - xm[link], rest - rm[link]))
         r = jnp.moveaxis(rot.polar(jnp.moveaxis(h, 0, -1), iterations=3), -1, 0)
         p = xm - jnp.einsum("lij,lj->li", r, rm)
         par = np.where(self.parent >= 0, self.parent, n_links)
@@ -432,11 +486,10 @@ class Rig:
             is_rev = np.any(self.rot_axis != 0, axis=1)
             value = jnp.where(is_rev, angle, slide)
             z = z.at[self.scalar_coords].set(value[self.scalar_links])
-        for i in self.free_links:
-            centre = jnp.asarray(self.centres[i])
-            c = self.coord_start[i]
-            z = z.at[c:c + 3].set(p_rel[i] + r_rel[i] @ centre - centre)
-            z = z.at[c + 3:c + 7].set(rot.mat_to_quat(r_rel[i][:, :, None])[:, 0])
+        if len(self.free_links):  # roots: relative to the world
+            centre, i = jnp.asarray(self.free_centres), self.free_links
+            z = z.at[self.free_coords[:, :3]].set(p_rel[i] + jnp.einsum("fij,fj->fi", r_rel[i], centre) - centre)
+            z = z.at[self.free_coords[:, 3:]].set(rot.mat_to_quat(jnp.moveaxis(r_rel[i], 0, -1)).T)
         return z
 
     def joint_values(self, z: Array) -> Array:
