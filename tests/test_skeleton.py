@@ -76,6 +76,32 @@ def test_fk_jacobian_matches_finite_differences(chain):
         assert float(jnp.abs(fd - b).max()) < 1e-8 * float(jnp.abs(b).max())
 
 
+def test_two_trees_are_solved_in_blocks_of_their_own_dofs(bar):
+    """Two trees (a Free root with a revolute child: 7 dofs; a second Free root: 6): the
+    Jacobian by trees holds, for each bone vertex, the central differences of FK along its
+    own tree's dofs (zero on padding slots), the other tree's dofs do not move it, and
+    ``B^T f`` (summed per link about its centroid) equals the dense product."""
+    rig = Skeleton([Link("a", "bone:a", None, Free()),
+                    Link("b", "bone:b", "a", Revolute((0.0, 1.0, 1.0), (0.1, 0.02, 0.02))),
+                    Link("c", "bone:c", None, Free())]).bind(bar)
+    assert rig.tree_dofs.tolist() == [list(range(7)), [7, 8, 9, 10, 11, 12, 13]]  # 13 pads the second tree
+    z, eps = _pose(rig, 4), 1e-6
+    fd = np.asarray(jnp.stack([(rig.positions(rig.retract(z, eps * e)) - rig.positions(rig.retract(z, -eps * e)))
+                               / (2 * eps) for e in jnp.eye(rig.n_dofs)], axis=-1))  # (n_b, 3, 13)
+    local = np.asarray(rig.local_jacobian(rig.pose(z)))  # (n_b, 3, 7)
+    slots = rig.tree_dofs[rig.vertex_tree]  # (n_b, 7)
+    padded = np.concatenate([fd, np.zeros_like(fd[:, :, :1])], axis=2)
+    expected = np.take_along_axis(padded, slots[:, None, :], axis=2)
+    assert np.abs(local - expected).max() < 1e-8 * np.abs(fd).max()
+    other = rig.tree_dofs[1 - rig.vertex_tree]
+    assert np.abs(np.take_along_axis(padded, other[:, None, :], axis=2)).max() < 1e-9
+    f = np.asarray(jax.random.normal(jax.random.PRNGKey(2), (len(rig.bone), 3)))
+    np.testing.assert_allclose(rig.reduce(rig.pose(z), jnp.asarray(f)), np.einsum("vik,vi->k", fd, f),
+                               rtol=0, atol=1e-8 * np.abs(fd).max() * np.abs(f).sum())
+    v = jnp.arange(rig.n_dofs, dtype=float) + 1.0
+    np.testing.assert_array_equal(rig.unblock(rig.blocks(v)), v)
+
+
 def test_coordinates_invert_forward_kinematics(chain):
     for seed in range(3):
         z = _pose(chain, seed)
