@@ -31,7 +31,7 @@ import numpy as np
 import optax
 
 from softbody.model import Model, Params, State, initial_state
-from softbody.simulate import Trajectory, _Messages, _raise_failure, integrate, integrator_of
+from softbody.simulate import Trajectory, _check_fit, _Messages, _raise_failure, integrate, integrator_of
 
 from .errors import ControlError
 from .losses import Loss, centroid_weights, region_vertices
@@ -171,14 +171,19 @@ def policy_rollout(model: Model, params: Params, policy, observations: Observati
         ``(n_steps, n_channels)`` activations the policy chose.
 
     Raises:
-        ControlError: ``n_steps < 1``, or a policy output of the wrong shape.
+        ControlError: ``n_steps`` not a whole number >= 1, or a policy output of the wrong shape.
+        softbody.model.SceneError: ``params`` or ``state0`` of another model (shapes named).
         softbody.simulate.SimulationError: with ``throw=True``, a step stopped at the
             iteration cap, became non-finite or inverted more tets than ``state0`` had;
             traced (inside :func:`train_policy`'s gradient) the same message is raised at
             run time as an equinox error.
     """
-    if int(n_steps) < 1:
+    if isinstance(n_steps, bool) or not isinstance(n_steps, (int, np.integer)):
+        raise ControlError(f"n_steps must be a whole number of steps, got {n_steps!r}; round a computed count, "
+                           "e.g. n_steps=round(duration / dt)")
+    if n_steps < 1:
         raise ControlError(f"n_steps must be >= 1, got {n_steps}")
+    _check_fit(model, params=params, state0=state0)
     state0 = initial_state(model, params) if state0 is None else state0
     _check_policy(model, policy, observations)
     traj, controls, failed, branch = _policy_rollout(model, params, policy, observations, int(n_steps), state0)

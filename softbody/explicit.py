@@ -120,7 +120,7 @@ def explicit_rollout(model: Model, params: Params, state0: State, controls=None,
             bad step. Traced, the same message is raised at run time as an equinox error.
     """
     SymplecticEuler.capabilities.check(model.features, "explicit_rollout")
-    controls, forces, n_steps = _check_controls(model, controls, forces, n_steps)
+    controls, forces, n_steps = _check_controls(model, controls, forces, n_steps, params=params, state0=state0)
     traj, failed, branch = _explicit(model, params, state0, controls, forces, n_steps, model.options.dt)
     if not throw:
         return traj

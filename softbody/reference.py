@@ -354,7 +354,7 @@ def newton_rollout(model: Model, params: Params, state0: State, n_steps: int | N
         SimulationError: a step that fails (see :func:`newton_step`), naming the step.
     """
     _check_step_inputs(model, None, None)
-    controls, forces, n_steps = _check_controls(model, controls, forces, n_steps)
+    controls, forces, n_steps = _check_controls(model, controls, forces, n_steps, params=params, state0=state0)
     prep = prepare(model, params)
     state, xs, vs, stats = state0, [state0.x], [state0.v], []
     for k in range(n_steps):

@@ -182,6 +182,35 @@ def test_rollout_refuses_a_state_or_params_of_another_model(beam):
         rollout(model, other_params, state, n_steps=2)
 
 
+def test_every_rollout_refuses_a_fractional_step_count_or_a_state_of_another_model(beam, no_compiling, monkeypatch):
+    """policy_rollout ran int(2.5) = 2 steps; explicit_rollout and newton_rollout took a state
+    or params of another model as far as JAX's broadcasting error."""
+    import control as sc
+    import control.policy
+
+    from softbody.explicit import explicit_rollout
+    from softbody.reference import newton_rollout
+
+    monkeypatch.setattr(control.policy, "_policy_rollout", lambda *a, **k: pytest.fail("policy_rollout compiled"))
+    model, params = beam
+    other, other_params = build(SoftBody(grid_box((0.1, 0.02, 0.02), (2, 1, 1)), Material(), fixed="fixed"))
+    state, alien = initial_state(model, params), initial_state(other, other_params)
+    obs = sc.Observations(model, [None], periods=[0.1])
+    def policy(observation):  # the beam has no actuators: zero channels
+        return jnp.zeros(model.n_channels)
+    with pytest.raises(sc.ControlError, match="n_steps must be a whole number of steps, got 2.5"):
+        sc.policy_rollout(model, params, policy, obs, 2.5)
+    with pytest.raises(SceneError, match=r"state0.x has shape \(12, 3\) but this model .* needs \(24, 3\)"):
+        sc.policy_rollout(model, params, policy, obs, 2, alien)
+    for run in (explicit_rollout, newton_rollout):
+        with pytest.raises(SceneError, match="n_steps must be a whole number of steps, got 2.5"):
+            run(model, params, state, n_steps=2.5)
+        with pytest.raises(SceneError, match=r"state0.x has shape \(12, 3\) but this model .* needs \(24, 3\)"):
+            run(model, params, alien, n_steps=2)
+        with pytest.raises(SceneError, match=r"params.morph has shape \(12, 3\) .* needs \(24, 3\)"):
+            run(model, other_params, state, n_steps=2)
+
+
 def test_step_refuses_a_state_or_prep_of_another_model(beam, no_compiling):
     """step and solve_static used to fail inside JAX with "add got incompatible shapes"."""
     model, params = beam
