@@ -251,6 +251,24 @@ def test_a_crossing_the_rows_missed_is_never_silent(scene):
         check_trajectory(model, traj)
 
 
+def test_a_pile_falling_together_is_no_overflow_and_a_crossing_in_it_is_found():
+    """Eight 2 cm cubes in a 2 x 2 x 2 pile, 1 mm apart, move 5 mm down together: their swept
+    boxes overlap (192 vertex-triangle and 436 edge-edge pairs) though nothing crosses. The
+    tunnelling check's default buffers (4 per vertex, 4 per edge) overflowed, and a settling
+    pile's steps ended with RESULTS.overflow; its second, larger search holds them. A top
+    cube moved through the one below is still counted."""
+    cubes = [SoftBody(grid_box((0.02,) * 3, (1, 1, 1), origin=(0.021 * i, 0.021 * j, 0.021 * k)), Material(),
+                      name=f"cube{i}{j}{k}") for i in range(2) for j in range(2) for k in range(2)]
+    model, params = build(cubes, rows=[Touch(*[c.name for c in cubes], thickness=1e-3)])
+    generator, p = model.rows[0], params.rows[0]
+    x0 = jnp.asarray(model.mesh.points)
+    count, overflow = generator.crossed(x0, x0.at[:, 2].add(-0.005), p)
+    assert int(count) == 0 and not bool(overflow)
+    top = np.flatnonzero(np.isin(np.arange(model.n_vertices), model.mesh.regions["cube001"].vertices))
+    count, _ = generator.crossed(x0, x0.at[top, 2].add(-0.03), p)  # through cube000 below it
+    assert int(count) > 0
+
+
 @pytest.mark.slow
 def test_frictionless_step_and_its_gradient_match_the_collision_qp():
     """With no elasticity to speak of (E = 1e-6 Pa), no gravity and a held slab, a step is the

@@ -135,8 +135,10 @@ __all__ = ["Touch", "every_pair"]
 
 # the default capacity of the broad phase per pass: candidate triangles per surface vertex
 _CANDIDATES_PER_VERTEX = 64
-#: the tunnelling check's candidates per surface vertex (see Touch.crossed)
+#: the tunnelling check's candidates per surface vertex and per surface edge (see Touch.crossed)
 _CROSSING_CANDIDATES_PER_VERTEX = 4
+#: the tunnelling check's second search, where the first overflows, is this many times larger
+_CROSSING_RETRY = 16
 #: edge rows need their closest points this far inside both edges (fraction of each edge):
 #: nearer an end, the vertex rows hold the contact
 _EDGE_END = 1e-3
@@ -265,9 +267,11 @@ class Touch(PairRows):
             (:func:`softbody.contact.broad_phase.candidates`) holds per step for each body's
             vertices (static; the search holds ``capacity * len(bodies)``; default 64 per
             surface vertex; the box tests' budget is 4 times it; the edge rows' search holds
-            as many (edge, edge) pairs per surface edge as this holds per surface vertex). A
-            step that finds more ends
-            with the result code ``RESULTS.overflow`` (a rollout raises, naming this fix).
+            as many (edge, edge) pairs per surface edge as this holds per surface vertex; the
+            tunnelling check, :meth:`crossed`, holds this many of each, by default 4 per
+            surface vertex and per surface edge, 64 where that overflows). A step that
+            finds more ends with the result code ``RESULTS.overflow`` (a rollout raises,
+            naming this fix).
 
     The friction coefficients, restitution and thickness are the generator's parameters
     (``params.rows[i]``, a dict with those keys): differentiable.
@@ -527,17 +531,29 @@ class Touch(PairRows):
         on a straight line from ``x_start`` to ``x_end`` (continuous collision detection
         between distinct bodies only, :func:`softbody.contact.ccd.tunnelled`): ``(count,
         overflow)`` (see :meth:`PairRows.crossed`). The search's buffers hold
-        :attr:`capacity` (default four per surface vertex) vertex-triangle and as many
-        edge-edge candidates; a step whose rows held the surfaces apart has none (its swept
-        boxes do not overlap), so they fill only where a surface came close to passing."""
+        :attr:`capacity` vertex-triangle and as many edge-edge candidates, or by default four
+        per surface vertex and four per surface edge. Bodies that move together a few
+        millimetres a step while resting a millimetre apart (a pile falling, a stack
+        settling) have overlapping swept boxes without crossing: where the default buffers
+        overflow, the search runs once more with :data:`_CROSSING_RETRY` times their size
+        (compiled beside the first, run only then), so that such a step is not reported as
+        an overflow."""
         scene = self._bound()
         # a surface's own neighbouring elements are candidates of its self-contact check
-        per_vertex = _CROSSING_CANDIDATES_PER_VERTEX * (8 if scene.selves else 1)
-        capacity = self.capacity or per_vertex * len(scene.points)
-        found = ccd.tunnelled(*jax.lax.stop_gradient((x_start, x_end)), scene.faces, capacity=capacity,
-                              edge_capacity=capacity, groups=scene.rank,
-                              allowed=scene.allowed + tuple((r, r) for r in scene.selves))
-        return found.count, found.overflow
+        per_element = _CROSSING_CANDIDATES_PER_VERTEX * (8 if scene.selves else 1)
+        n_edges = len(ccd.surface_edges(scene.faces))
+        x_start, x_end = jax.lax.stop_gradient((x_start, x_end))
+
+        def search(size):
+            found = ccd.tunnelled(x_start, x_end, scene.faces, capacity=self.capacity or size * len(scene.points),
+                                  edge_capacity=self.capacity or size * n_edges, groups=scene.rank,
+                                  allowed=scene.allowed + tuple((r, r) for r in scene.selves))
+            return found.count, found.overflow
+
+        count, overflow = search(per_element)
+        if self.capacity:
+            return count, overflow
+        return jax.lax.cond(overflow, lambda: search(_CROSSING_RETRY * per_element), lambda: (count, overflow))
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
