@@ -24,7 +24,7 @@ pytree of arrays: it may be carried through ``lax.scan``/``lax.while_loop``, ret
 =================  ====================  =====  ===  ===============================
 solver             runs                  vmap   GPU  use it for
 =================  ====================  =====  ===  ===============================
-SparseLDL          native (XLA FFI)      yes*   no   CPU, n >~ 400 (the default there
+SparseLDL          native (XLA FFI)      yes**  no   CPU, n >~ 400 (the default there
                                                      when a C++ compiler is present)
 SparseCholesky     host (cholespy)       yes*   no   CPU, n >~ 400 without a compiler
 SparseLU           host (scipy splu)     yes*   no   CPU when cholespy is missing
@@ -35,7 +35,7 @@ PCG                JAX (lineax CG)       yes    yes  GPU, vmap over many matrice
 =================  ====================  =====  ===  ===============================
 
 \\* Host solvers factorise each batch member separately and solve all members that share
-a factorisation in one host call.
+a factorisation in one host call. \\** One member after another, natively.
 
 Sharp bits:
 
@@ -43,11 +43,11 @@ Sharp bits:
   ``(j, i)``): the gradients assume it, and the Cholesky solvers read one triangle only.
   ``factorize`` checks it. Parametrise the values symmetrically (assemble them from
   symmetric element matrices) and the gradients reach your parameters exactly.
-- Host solvers keep their factorisations in a process-wide cache of the
-  :func:`factor_cache_info` ``capacity`` most recent ones (16 by default, see
-  :func:`set_factor_cache_capacity`); the :class:`Factor` holds a handle into it. A solve
-  whose factorisation was evicted refactorises from the values carried in the
-  :class:`Factor` (with a ``RuntimeWarning``) instead of failing.
+- The host solvers (:class:`SparseCholesky`, :class:`SparseLU`) keep their factorisations
+  in a process-wide cache of the :func:`factor_cache_info` ``capacity`` most recent ones
+  (16 by default, see :func:`set_factor_cache_capacity`); the :class:`Factor` holds a
+  handle into it. A solve whose factorisation was evicted refactorises from the values
+  carried in the :class:`Factor` (with a ``RuntimeWarning``) instead of failing.
 - :class:`PCG` stops after ``max_iter`` iterations whether or not it reached ``tol`` and
   returns its last iterate without an error: check the residual of what you solved (the
   PD solver's force residual does) when you set ``max_iter`` low.
@@ -57,7 +57,6 @@ Sharp bits:
 from __future__ import annotations
 
 import abc
-import atexit
 import collections
 import functools
 import itertools
@@ -334,14 +333,15 @@ class Factor:
             flow back to them).
         aux: what the solver precomputed, outside the gradient: an ``()`` int64 handle into
             the host factor cache (:class:`SparseCholesky`, :class:`SparseLU`), the
-            ``(n, n)`` lower Cholesky factor (:class:`DenseCholesky`) or the ``(n,)``
-            inverse diagonal (:class:`PCG`).
+            ``(nnz_L + n,)`` values of ``L`` and ``D^-1`` with the ``(nnz_L,)`` int32 row
+            indices of ``L`` (:class:`SparseLDL`, a pair), the ``(n, n)`` lower Cholesky
+            factor (:class:`DenseCholesky`) or the ``(n,)`` inverse diagonal (:class:`PCG`).
 
     Under ``vmap`` every field gains the batch axis.
     """
 
     data: jax.Array
-    aux: jax.Array
+    aux: jax.Array | tuple[jax.Array, ...]
 
 
 class LinearSolver(abc.ABC):
@@ -412,9 +412,10 @@ def _check_solve_args(solver, pattern, factor, aux_shape, b, x0):
     if not isinstance(factor, Factor):
         raise TypeError(f"{where}: factor must be a Factor from factorize, got {type(factor)}")
     _check_shape(where, "factor.data", jnp.shape(factor.data), (pattern.nnz,))
-    if jnp.shape(factor.aux) != aux_shape:
+    shape = jax.tree.map(jnp.shape, factor.aux)
+    if shape != aux_shape:
         raise ValueError(
-            f"{where}: factor.aux has shape {jnp.shape(factor.aux)}, expected {aux_shape}: "
+            f"{where}: factor.aux has shape {shape}, expected {aux_shape}: "
             f"was the factor made by {type(solver).__name__}.factorize with this pattern?"
         )
     b = jnp.asarray(b)
@@ -663,9 +664,6 @@ class _FactorCache:
             }
 
     def _store(self, handle: int, solve: Callable) -> None:
-        bind = getattr(solve, "bind", None)  # native factors register under their handle
-        if bind is not None:
-            bind(handle)
         self._entries[handle] = solve
         self._entries.move_to_end(handle)
         self._evict()
@@ -676,7 +674,6 @@ class _FactorCache:
 
 
 _CACHE = _FactorCache(capacity=16)
-atexit.register(_CACHE.clear)  # release the native factors before the interpreter tears down
 
 
 def factor_cache_info() -> dict:
@@ -723,9 +720,6 @@ class _HostSolver(LinearSolver):
     def host_callback(self) -> bool:
         return True
 
-    #: Whether the host solve may run on several threads at once (else it is locked).
-    _thread_safe = False
-
     @abc.abstractmethod
     def _factor_on_host(self, pattern: SparsityPattern, data: np.ndarray) -> Callable:
         """Factorise; returns ``solve(b)`` for C-contiguous float64 ``b`` of shape ``(n, m)``."""
@@ -738,8 +732,6 @@ class _HostSolver(LinearSolver):
         if _asymmetry(pattern, data, np):
             raise ValueError(f"{name}: {_ASYMMETRIC}")
         solve = self._factor_on_host(pattern, data)
-        if self._thread_safe:
-            return solve
         lock = threading.Lock()  # XLA may run independent callbacks on several threads
 
         def locked_solve(b):
@@ -926,49 +918,97 @@ class SparseLU(_HostSolver):
         return lu.solve
 
 
-class _NativeFactor:
-    """One ``LDL^T`` factor handed to the native library, stored there under the factor
-    cache handle it is bound to and released when the cache drops it."""
+@dataclass(frozen=True, eq=False)
+class _LdlAnalysis:
+    """The symbolic analysis of :class:`SparseLDL` for one pattern (int32 numpy arrays).
 
-    def __init__(self, lib, n: int, arrays: tuple):
-        self._lib, self._n, self._arrays = lib, n, arrays
-        self._handle = None
+    ``perm[new] = old`` and ``pinv[old] = new`` is the fill-reducing permutation,
+    ``parent`` the elimination tree of ``P A P^T`` and ``colptr`` (``n + 1``) the column
+    pointers of its strictly lower factor ``L``, which has ``nnz_l`` entries.
+    """
 
-    def bind(self, handle: int) -> None:
-        serial = self._lib.softbody_ldl_store(handle, self._n, *self._arrays)
-        if serial < 0:
-            raise MemoryError(f"SparseLDL: could not store a factor of size {self._n}")
-        weakref.finalize(self, self._lib.softbody_ldl_release, handle, serial)
-        self._handle = handle
+    perm: np.ndarray
+    pinv: np.ndarray
+    parent: np.ndarray
+    colptr: np.ndarray
+    nnz_l: int
 
-    def __call__(self, b: np.ndarray) -> np.ndarray:
-        x = np.empty_like(b)
-        if self._handle is None or not self._lib.softbody_ldl_solve_host(self._handle, b, x, b.size):
-            raise RuntimeError("SparseLDL: this factor is not bound to a cache handle")
-        return x
+
+_ANALYSES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_ANALYSES_LOCK = threading.Lock()
+
+
+def _ldl_analysis(pattern: SparsityPattern) -> _LdlAnalysis:
+    """The (cached) symbolic analysis of ``pattern`` for :class:`SparseLDL`.
+
+    The ordering is SuperLU's minimum degree on ``A + A^T`` (``MMD_AT_PLUS_A``, with its
+    elimination-tree postorder), taken from a factorisation of a diagonally dominant
+    stand-in matrix on the pattern: it depends on the pattern only.
+    """
+    from softbody import native
+
+    with _ANALYSES_LOCK:
+        analysis = _ANALYSES.get(pattern)
+    if analysis is not None:
+        return analysis
+    n = pattern.n
+    off_diagonal = np.diff(pattern.indptr) - 1
+    stand_in = np.where(pattern.rows == pattern.cols, off_diagonal[pattern.rows] + 1.0, -1.0)
+    lu = scipy.sparse.linalg.splu(
+        pattern.to_scipy(stand_in).tocsc(),
+        permc_spec="MMD_AT_PLUS_A",
+        diag_pivot_thresh=0.0,
+        options={"SymmetricMode": True},
+    )
+    pinv = np.ascontiguousarray(lu.perm_c, np.int32)
+    perm = np.ascontiguousarray(np.argsort(pinv), np.int32)
+    colptr = np.empty(n + 1, np.int64)
+    parent = np.empty(n, np.int32)
+    nnz_l = int(native.library().softbody_ldl_symbolic(n, pattern.indptr, pattern.cols, perm, pinv, colptr, parent))
+    if nnz_l + n >= 2**31:
+        raise ValueError(f"SparseLDL: the factor would hold {nnz_l} entries, more than its 32-bit indices "
+                         "address; use SparseCholesky")
+    analysis = _LdlAnalysis(perm, pinv, parent, colptr.astype(np.int32), nnz_l)
+    with _ANALYSES_LOCK:
+        _ANALYSES[pattern] = analysis
+    return analysis
+
+
+#: What to check when :class:`SparseLDL` refuses a matrix.
+_LDL_ADVICE = ("check the material parameters and the time step, and that fixed vertices were "
+               "eliminated")
 
 
 @dataclass(frozen=True)
-class SparseLDL(_HostSolver):
-    """Sparse ``LDL^T`` whose solves XLA runs natively, without a host callback (float64).
+class SparseLDL(LinearSolver):
+    """Sparse ``LDL^T`` factorised and solved natively inside XLA, without a host callback (float64).
 
-    The factorisation runs once on the host (SuperLU with a symmetric minimum-degree
-    ordering and diagonal pivots, which for a symmetric positive definite matrix is
-    ``P A P^T = L D L^T``); the triangular solves are compiled C++ registered as an XLA FFI
-    target (:mod:`softbody.native`), so each solve inside a compiled loop costs what the
-    arithmetic costs. On the shared DiffPD cantilever (n = 2673) that made a 25-frame
-    rollout 1.4-1.5x faster than :class:`SparseCholesky`, whose every solve is a Python
-    callback. Factorisations live in the same cache as the other host solvers (same
-    eviction and refactorisation); under ``vmap`` batch members are solved one by one.
+    The symbolic analysis runs once per sparsity pattern on the host, when the first
+    program using the pattern is traced: a fill-reducing ordering (SuperLU's minimum degree
+    on ``A + A^T``, as :class:`SparseLU` uses), the elimination tree and the column counts
+    of ``L``. The numeric factorisation ``P A P^T = L D L^T`` (up-looking, one row of ``L``
+    at a time, as in T. Davis's LDL) and the triangular solves are compiled C++ registered
+    as XLA FFI targets (:mod:`softbody.native`): the factor's values and row indices are
+    ordinary arrays of the :class:`Factor` (``aux``), each solve inside a compiled loop costs
+    what the arithmetic costs, and programs that factorise or solve hold no Python callback,
+    so JAX's persistent compilation cache keeps them. On the shared DiffPD cantilever
+    (n = 2673) the native solves made a 25-frame rollout 1.4-1.5x faster than
+    :class:`SparseCholesky`, whose every solve is a Python callback. A jitted
+    factorisation of a 546-vertex PD matrix takes 0.8 ms (7.8 ms when it was SuperLU
+    behind a host callback; at n = 2673, 26 ms for both), each solve 0.07 ms as before
+    (one core of a loaded 2-core machine). Under ``vmap`` batch members are factorised and
+    solved one by one.
 
     Raises:
         ImportError: when the native library cannot be built (no C++ compiler): use
             :class:`SparseCholesky`.
-        ValueError: at run time, from ``factorize``, if the matrix is not positive definite,
-            holds NaN/inf, or its values are not symmetric.
+        ValueError: from ``factorize`` or ``solve``, when tracing, for a pattern whose
+            factor needs more than 2^31 entries.
+        jax.errors.JaxRuntimeError: at run time, from the compiled program that
+            factorises (``ValueError`` when ``factorize`` runs eagerly), if the matrix is not
+            positive definite, holds NaN/inf, or its values are not symmetric; the message
+            starts ``SparseLDL:`` and names the problem and the fix.
     """
-
-    _thread_safe = True
 
     def __post_init__(self):
         from softbody import native
@@ -977,46 +1017,35 @@ class SparseLDL(_HostSolver):
             raise ImportError(f"SparseLDL needs the native library, which is unavailable: "
                               f"{native.unavailable_reason()}; use SparseCholesky")
 
-    def _factor_on_host(self, pattern: SparsityPattern, data: np.ndarray) -> Callable:
+    def factorize(self, pattern: SparsityPattern, data) -> Factor:
         from softbody import native
 
-        def indefinite(detail):
-            return ValueError(
-                f"SparseLDL: the matrix is not positive definite ({detail}); check the material "
-                "parameters and the time step, and that fixed vertices were eliminated")
+        data = _check_data(self, pattern, data)
+        analysis = _ldl_analysis(pattern)
+        values = jax.lax.stop_gradient(data).astype(jnp.float64)
+        shapes = (jax.ShapeDtypeStruct((analysis.nnz_l + pattern.n,), jnp.float64),
+                  jax.ShapeDtypeStruct((analysis.nnz_l,), jnp.int32))
+        factor = jax.ffi.ffi_call(native.FACTOR_TARGET, shapes, vmap_method="sequential")(
+            values, pattern.indptr, pattern.cols, analysis.colptr, analysis.parent, analysis.perm,
+            analysis.pinv, _asymmetry(pattern, values),
+            asymmetric=f"SparseLDL: {_ASYMMETRIC}", advice=_LDL_ADVICE)
+        return Factor(data, tuple(factor))
 
-        try:
-            lu = scipy.sparse.linalg.splu(
-                pattern.to_scipy(data).tocsc(),
-                permc_spec="MMD_AT_PLUS_A",
-                diag_pivot_thresh=0.0,
-                options={"SymmetricMode": True},
-            )
-        except RuntimeError as error:
-            raise indefinite(error) from error
-        d = lu.U.diagonal()
-        if not np.array_equal(lu.perm_r, lu.perm_c):
-            raise indefinite("SuperLU left the diagonal to pivot")
-        if not np.all(d > 0):
-            raise indefinite(f"pivot {float(d.min()):.3g} <= 0")
-        lower = scipy.sparse.tril(lu.L, k=-1, format="csc")
-        arrays = (
-            np.ascontiguousarray(lower.indptr, np.int64),
-            np.ascontiguousarray(lower.indices, np.int64),
-            np.ascontiguousarray(lower.data, np.float64),
-            np.ascontiguousarray(d, np.float64),
-            np.ascontiguousarray(lu.perm_r, np.int64),
-            np.ascontiguousarray(lu.perm_c, np.int64),
-        )
-        return _NativeFactor(native.library(), pattern.n, arrays)
-
-    def _solve_cached(self, handle, rhs, shapes):
+    def solve(self, pattern: SparsityPattern, factor: Factor, b, x0=None) -> jax.Array:
         from softbody import native
 
-        x, found = jax.ffi.ffi_call(native.SOLVE_TARGET, shapes, vmap_method="sequential")(
-            handle, rhs.astype(jnp.float64))
-        return x.astype(rhs.dtype), found
+        analysis = _ldl_analysis(pattern)
+        aux_shape = ((analysis.nnz_l + pattern.n,), (analysis.nnz_l,))
+        b, _ = _check_solve_args(self, pattern, factor, aux_shape, b, x0)
+        values, rowind = jax.lax.stop_gradient(factor.aux)
 
+        def solve(matvec, rhs):
+            x = jax.ffi.ffi_call(native.SOLVE_TARGET, jax.ShapeDtypeStruct(rhs.shape, jnp.float64),
+                                 vmap_method="sequential")(
+                values, analysis.colptr, rowind, analysis.pinv, rhs.astype(jnp.float64))
+            return x.astype(rhs.dtype)
+
+        return _implicit_solve(pattern, factor.data, b, solve, solve)
 
 # --------------------------------------------------------------------------- per column
 

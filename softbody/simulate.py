@@ -12,8 +12,8 @@ result code (:class:`~softbody._types.RESULTS`: success, max_iterations, nonfini
 inverted, overflow). :func:`rollout` and :func:`solve_static` raise :class:`SimulationError` for
 any step that did not succeed unless called with ``throw=False``; then the codes are in
 ``info.result``. The message is the same whether the call is traced (under an outer
-``jax.jit`` or ``jax.grad``, where ``equinox.branched_error_if`` raises it at run time)
-or not.
+``jax.jit`` or ``jax.grad``, where the compiled program fails with it at run time, as a
+``jax.errors.JaxRuntimeError``) or not.
 
 Energy terms (``model.terms``: actuators and user terms) come in three kinds, one base class each
 (:mod:`softbody._interfaces`):
@@ -70,9 +70,10 @@ Array = jax.Array
 class SimulationError(RuntimeError):
     """A step failed (:class:`~softbody._types.RESULTS`): it stopped at the iteration cap,
     became non-finite, inverted tets, overflowed a contact search or let surfaces pass through each other. The message names the first failing step, what
-    failed and the fix. Traced (under an outer ``jax.jit``/``jax.grad``) the same message
-    is raised at run time by equinox instead: a ``jax.errors.JaxRuntimeError`` that
-    contains it (an ``equinox.EquinoxRuntimeError`` under ``equinox.filter_jit``)."""
+    failed and the fix. Traced (under an outer ``jax.jit``/``jax.grad``) the compiled
+    program fails with the same message at run time instead: a
+    ``jax.errors.JaxRuntimeError`` that contains it (from a native check on CPU; from
+    equinox elsewhere, an ``equinox.EquinoxRuntimeError`` under ``equinox.filter_jit``)."""
 
 
 #: What to try when a simulation inverts tets or blows up under an actuator load.
@@ -161,8 +162,8 @@ def _static_templates(model: Model) -> tuple[str, ...]:
 @dataclasses.dataclass(frozen=True)
 class _Messages:
     """The failure messages of ``n_steps`` steps, entry ``variant * n_steps + step``
-    (``equinox.branched_error_if``'s branches). Formatted on demand: only the entry that
-    is raised is ever built."""
+    (the branches of the run-time check). Formatted on demand: only the entry that is
+    raised is ever built."""
 
     templates: tuple[str, ...]
     n_steps: int
@@ -190,13 +191,43 @@ def _first_failure(result, x_after, v_after):
 
 def _raise_failure(tree, failed, branch, messages: _Messages):
     """``tree`` unchanged; raise ``messages[branch]`` when ``failed``: a
-    :class:`SimulationError` now when the flags are concrete, else (traced) an equinox
-    runtime error with the same text, tied to ``tree`` so that it fires when it is used."""
+    :class:`SimulationError` now when the flags are concrete, else (traced) a run-time
+    error of the compiled program with the same text (:func:`_fail_at_run_time`)."""
     if isinstance(failed, jax.core.Tracer) or isinstance(branch, jax.core.Tracer):
-        return eqx.branched_error_if(tree, failed, branch, messages)
+        return _fail_at_run_time(tree, failed, branch, messages)
     if bool(failed):
         raise SimulationError(messages[int(branch)])
     return tree
+
+
+def _fail_at_run_time(tree, failed, branch, messages: _Messages):
+    """``tree`` unchanged; the compiled program fails with ``messages[branch]`` when
+    ``failed`` (traced flags), raising a ``jax.errors.JaxRuntimeError`` that contains it.
+
+    On CPU with the native library this is an XLA FFI call (:data:`softbody.native.CHECK_TARGET`,
+    given the messages' templates as an attribute), which keeps the program fit for JAX's
+    persistent compilation cache; elsewhere (other platforms, no C++ compiler) it is
+    ``equinox.branched_error_if``, a host callback. Either is tied to ``tree`` (the check
+    returns a zero that is added to every leaf), so it runs when ``tree`` is used, and, as
+    equinox's, to its primal values only; under ``vmap`` the native check takes the members
+    one by one.
+    """
+    from softbody import native
+
+    if not native.available():
+        return eqx.branched_error_if(tree, failed, branch, messages)
+    templates = "\x1f".join(messages.templates)
+
+    def on_cpu(failed, branch):
+        return jax.ffi.ffi_call(native.CHECK_TARGET, jax.ShapeDtypeStruct((), jnp.int32), vmap_method="sequential")(
+            failed, branch, messages=templates, n_steps=np.int64(messages.n_steps))
+
+    def elsewhere(failed, branch):
+        return eqx.branched_error_if(jnp.zeros((), jnp.int32), failed, branch, messages)
+
+    token = jax.lax.platform_dependent(jnp.asarray(failed, bool), jnp.asarray(branch, jnp.int32), cpu=on_cpu,
+                                       default=elsewhere)
+    return jax.tree.map(lambda leaf: leaf + token.astype(jnp.result_type(leaf)), tree)  # 0, kept by XLA
 
 
 @contextlib.contextmanager
@@ -599,10 +630,12 @@ def rollout(model: Model, params: Params, state0: State, controls=None, forces=N
             meeting its tolerance, its state or residual became non-finite, or it ended
             with more inverted tets (``det F <= 0``) than ``state0``; the message names the
             first failing step, what failed and the fix. Traced (under an outer
-            ``jit``/``grad``) the same message is raised at run time as an equinox error
-            (a ``jax.errors.JaxRuntimeError`` containing it); that check is a host callback,
-            which keeps the compiled program out of the persistent compilation cache: pass
-            ``throw=False`` there and call :func:`check_trajectory` on the result instead.
+            ``jit``/``grad``) the compiled program fails with the same message at run time:
+            a ``jax.errors.JaxRuntimeError`` containing it, raised where the result is
+            used (e.g. ``block_until_ready``). On CPU with the native library the check is
+            an XLA FFI call, which JAX's persistent compilation cache keeps; elsewhere it is
+            an equinox runtime check (a host callback, which the cache does not keep: there
+            pass ``throw=False`` and call :func:`check_trajectory` on the result instead).
     """
     controls, forces, n_steps = _check_controls(model, controls, forces, n_steps, params, state0)
     with _forward_mode_hint():
@@ -615,12 +648,13 @@ def rollout(model: Model, params: Params, state0: State, controls=None, forces=N
 def check_trajectory(model: Model, traj: Trajectory) -> Trajectory:
     """Raise for the first failed step of a computed trajectory, as ``rollout`` would.
 
-    Under an outer ``jax.jit`` or ``jax.grad``, ``rollout(..., throw=True)`` raises through
-    an equinox runtime check, a Python host callback inside the compiled program; JAX does
-    not keep such programs in its persistent compilation cache, so they compile again in
-    every process. Calling ``rollout(..., throw=False)`` inside the compiled function and
-    ``check_trajectory`` on what it returns gives the same errors, from a program that the cache
-    keeps (``softbody demo`` does this).
+    Under an outer ``jax.jit`` or ``jax.grad``, ``rollout(..., throw=True)`` fails the
+    compiled program at run time (a ``jax.errors.JaxRuntimeError``); without the native
+    library, or off the CPU, its check is a Python host callback, and JAX does not keep such
+    programs in its persistent compilation cache. Calling ``rollout(..., throw=False)``
+    inside the compiled function and ``check_trajectory`` on what it returns gives the same
+    errors as a :class:`SimulationError`, from a program without a check (``softbody demo``
+    does this).
 
     Arguments:
         model: the model the trajectory was simulated with (for the messages).
@@ -674,7 +708,7 @@ def solve_static(model: Model, params: Params, force=None, activation=None, x0=N
             solution is non-finite (e.g. the load exceeds what the body can carry, such as
             a cavity pressure past its maximum, where no equilibrium exists), or it has more
             inverted tets than ``x0``. Traced (under an outer ``jit``/``grad``) the same
-            message is raised at run time as an equinox error.
+            message is raised at run time, as in :func:`rollout`.
     """
     if len(model.fixed) == 0:
         raise SceneError("a static solve needs fixed vertices (build the model with fixed=...)")

@@ -283,7 +283,7 @@ def test_per_column_solves_each_column_with_its_matrix(system, name):
 # --------------------------------------------------------------------------- host cache
 
 
-@pytest.mark.parametrize("name", ["SparseLDL", "SparseCholesky", "SparseLU"])
+@pytest.mark.parametrize("name", ["SparseCholesky", "SparseLU"])
 def test_evicted_factorisation_is_rebuilt_from_the_factor(system, name, small_cache):
     pattern, data, b, x = system
     solver = SOLVERS[name]
@@ -320,29 +320,77 @@ def test_factorize_runs_once_per_call_and_handles_differ(system):
     assert int(first.aux) != int(second.aux)
 
 
-def test_native_solve_is_compiled_in_without_a_host_callback(system):
-    """SparseLDL's solve is an XLA FFI call in the compiled program; the Python callback
-    appears only in the branch that refactorises an evicted factorisation."""
+def test_sparse_ldl_compiles_without_a_host_callback(system):
+    """SparseLDL factorises and solves through XLA FFI calls: no Python callback in the
+    program (which would keep it out of the persistent compilation cache), nothing in the
+    host factor cache, and its factor is plain arrays."""
     pattern, data, b, x = system
     solver = SOLVERS["SparseLDL"]
-    factor = jax.block_until_ready(solver.factorize(pattern, data))
-    text = jax.jit(lambda f, b: solver.solve(pattern, f, b)).lower(factor, b).as_text()
-    assert "softbody_ldl_solve" in text
-    assert text.count("xla_ffi_python_cpu_callback") + text.count("xla_python_cpu_callback") == 1
-
-
-def test_native_factors_are_released_with_the_cache(system):
-    from softbody import native
-
-    pattern, data, b, x = system
-    lib = native.library()
+    assert not solver.host_callback and linsolve.PerColumn(solver).host_callback is False
+    program = jax.jit(lambda d, b: solver.solve(pattern, solver.factorize(pattern, d), b))
+    text = program.lower(data, b).as_text()
+    assert "softbody_ldl_factor" in text and "softbody_ldl_solve" in text
+    assert "callback" not in text
     linsolve.clear_factor_cache()
-    assert lib.softbody_ldl_count() == 0
-    factors = [jax.block_until_ready(SOLVERS["SparseLDL"].factorize(pattern, k * data)) for k in (1, 2)]
-    assert lib.softbody_ldl_count() == 2
-    assert relative_error(SOLVERS["SparseLDL"].solve(pattern, factors[1], b), x / 2) < 1e-10
-    linsolve.clear_factor_cache()
-    assert lib.softbody_ldl_count() == 0
+    assert relative_error(program(data, b), x) < 1e-12
+    assert linsolve.factor_cache_info()["size"] == 0
+    values, rowind = solver.factorize(pattern, data).aux
+    assert values.dtype == jnp.float64 and rowind.dtype == jnp.int32
+
+
+def _random_spd(n: int, seed: int):
+    """A random SPD matrix on a random symmetric pattern: ``(pattern, data, dense)``."""
+    rng = np.random.default_rng(seed)
+    i, j = rng.integers(0, n, (2, 4 * n))
+    keep = i != j
+    rows = np.concatenate([i[keep], j[keep], np.arange(n)])
+    cols = np.concatenate([j[keep], i[keep], np.arange(n)])
+    pattern, _ = SparsityPattern.from_coo(n, rows, cols)
+    upper = np.where(pattern.rows < pattern.cols, rng.uniform(-1, 1, pattern.nnz), 0.0)
+    off = upper + upper[pattern.transpose_index]
+    dense = np.asarray(pattern.to_dense(off))
+    data = off + np.where(pattern.rows == pattern.cols, np.abs(dense).sum(axis=1)[pattern.rows] + 0.1, 0.0)
+    return pattern, data, np.asarray(pattern.to_dense(data))
+
+
+def test_sparse_ldl_factor_matches_scipy_on_a_random_pattern():
+    """The native numeric factorisation on an irregular pattern: ``L D L^T`` is the
+    permuted matrix, and solves agree with scipy to rounding."""
+    pattern, data, dense = _random_spd(300, seed=3)
+    solver = SOLVERS["SparseLDL"]
+    factor = jax.jit(solver.factorize, static_argnums=0)(pattern, data)
+    analysis = linsolve._ldl_analysis(pattern)
+    values, rowind = (np.asarray(a) for a in factor.aux)
+    n, nnz_l = pattern.n, analysis.nnz_l
+    lower = scipy.sparse.csc_matrix((values[:nnz_l], rowind, analysis.colptr), shape=(n, n)).toarray()
+    unit = lower + np.eye(n)
+    product = unit @ np.diag(1 / values[nnz_l:]) @ unit.T
+    permuted = dense[np.ix_(analysis.perm, analysis.perm)]
+    assert np.max(np.abs(product - permuted)) < 1e-12 * np.max(np.abs(dense))
+    b = np.random.default_rng(4).standard_normal((n, 5))
+    x = np.asarray(solver.solve(pattern, factor, b))
+    assert np.max(np.abs(dense @ x - b)) < 1e-12 * np.max(np.abs(b))
+    assert relative_error(x, scipy.sparse.linalg.spsolve(pattern.to_scipy(data).tocsc(), b)) < 1e-12
+
+
+def test_sparse_ldl_refuses_nan_and_indefinite_matrices_with_the_fix(system):
+    pattern, data, b, _ = system
+    factorize = jax.jit(SOLVERS["SparseLDL"].factorize, static_argnums=0)
+    indefinite = data.copy()
+    indefinite[pattern.diagonal_index[7]] *= -1
+    with pytest.raises(jax.errors.JaxRuntimeError,
+                       match=r"SparseLDL: the matrix is not positive definite \(pivot .* <= 0 at row \d+\); "
+                             r"check the material parameters and the time step"):
+        jax.block_until_ready(factorize(pattern, indefinite))
+    nan = data.copy()
+    nan[pattern.diagonal_index[3]] = np.nan
+    with pytest.raises(jax.errors.JaxRuntimeError, match=r"SparseLDL: the matrix values contain NaN or inf \(entry \(3, 3\)\)"):
+        jax.block_until_ready(factorize(pattern, nan))
+    # a batch refuses the member that fails, and solves the others
+    batch = jax.jit(jax.vmap(lambda d: SOLVERS["SparseLDL"].solve(pattern, SOLVERS["SparseLDL"].factorize(pattern, d), b)))
+    with pytest.raises(jax.errors.JaxRuntimeError, match="not positive definite"):
+        jax.block_until_ready(batch(np.stack([data, indefinite])))
+    assert np.all(np.isfinite(np.asarray(batch(np.stack([data, 2 * data])))))
 
 
 # --------------------------------------------------------------------------- PCG specifics
@@ -370,7 +418,8 @@ def test_pcg_without_preconditioner_converges_too(system):
 
 
 #: The JAX solvers refuse a matrix arithmetically (every solve NaN: no host callback, so
-#: their programs can be cached); the host solvers raise from their callback.
+#: their programs can be cached); the host solvers raise from their callback, SparseLDL
+#: from its native factorisation.
 IN_JAX = ("DenseCholesky", "PCG")
 
 

@@ -1,10 +1,14 @@
 """Native kernels that XLA calls directly, compiled from source on first use.
 
-``sparse_ldl.cc`` holds sparse ``LDL^T`` triangular solves registered as an XLA FFI
-target (``softbody_ldl_solve``), used by :class:`softbody.linsolve.SparseLDL`. A host
-callback (``jax.pure_callback``) costs about 1-2 ms per call inside a compiled loop that
-also does heavy XLA work (measured on the shared DiffPD cantilever: 3.5 ms against 1.4 ms
-per local-global iteration with a JAX-native stand-in); a native call does not enter Python.
+``sparse_ldl.cc`` holds the sparse ``LDL^T`` factorisation and triangular solves of
+:class:`softbody.linsolve.SparseLDL`, registered as XLA FFI targets (``softbody_ldl_factor``,
+``softbody_ldl_solve``), its symbolic analysis (``softbody_ldl_symbolic``, called through
+ctypes once per sparsity pattern), and the failure check of ``rollout(..., throw=True)``
+under an outer ``jit``/``grad`` (``softbody_check``). A host callback (``jax.pure_callback``)
+costs about 1-2 ms per call inside a compiled loop that also does heavy XLA work (measured
+on the shared DiffPD cantilever: 3.5 ms against 1.4 ms per local-global iteration with a
+JAX-native stand-in), and it keeps the program out of JAX's persistent compilation cache;
+a native call does neither.
 ``tet_hessian.cc`` holds the per-tet Hessian-vector product of the implicit adjoint
 (``softbody_tet_hessian_product``, :func:`tet_hessian_operator`): on the shared cantilever
 0.35 ms a jitted call against 0.77 ms for the same product as XLA loops (same process, idle
@@ -14,7 +18,8 @@ The library is built with the system C++ compiler (``$CXX`` or ``c++``) against 
 FFI headers shipped with jaxlib, once per set of sources and jaxlib version, into
 ``$SOFTBODY_CACHE_DIR`` (default ``~/.cache/softbody``). Without a compiler
 :func:`library` returns ``None`` and :func:`unavailable_reason` says why; the solvers fall
-back to :class:`softbody.linsolve.SparseCholesky` and the Hessian product to XLA.
+back to :class:`softbody.linsolve.SparseCholesky`, the Hessian product to XLA and the
+rollout check to an equinox runtime check (a host callback).
 """
 
 from __future__ import annotations
@@ -34,6 +39,10 @@ import numpy as np
 
 #: Name of the XLA FFI target of the LDL^T solve.
 SOLVE_TARGET = "softbody_ldl_solve"
+#: Name of the XLA FFI target of the numeric LDL^T factorisation.
+FACTOR_TARGET = "softbody_ldl_factor"
+#: Name of the XLA FFI target that fails a program with a message (``softbody.simulate``).
+CHECK_TARGET = "softbody_check"
 #: Name of the XLA FFI target of the per-tet Hessian-vector product.
 HESSIAN_TARGET = "softbody_tet_hessian_product"
 #: The C++ sources, compiled together into one library.
@@ -88,16 +97,12 @@ def _load() -> ctypes.CDLL:
                      target)
     lib = ctypes.CDLL(str(target))
     i64 = np.ctypeslib.ndpointer(np.int64, flags="C_CONTIGUOUS")
-    f64 = np.ctypeslib.ndpointer(np.float64, flags="C_CONTIGUOUS")
-    lib.softbody_ldl_store.restype = ctypes.c_int64
-    lib.softbody_ldl_store.argtypes = [ctypes.c_int64, ctypes.c_int64, i64, i64, f64, f64, i64, i64]
-    lib.softbody_ldl_release.restype = None
-    lib.softbody_ldl_release.argtypes = [ctypes.c_int64, ctypes.c_int64]
-    lib.softbody_ldl_solve_host.restype = ctypes.c_int
-    lib.softbody_ldl_solve_host.argtypes = [ctypes.c_int64, f64, f64, ctypes.c_int64]
-    lib.softbody_ldl_count.restype = ctypes.c_int64
-    lib.softbody_ldl_count.argtypes = []
+    i32 = np.ctypeslib.ndpointer(np.int32, flags="C_CONTIGUOUS")
+    lib.softbody_ldl_symbolic.restype = ctypes.c_int64
+    lib.softbody_ldl_symbolic.argtypes = [ctypes.c_int64, i32, i32, i32, i32, i64, i32]
+    jax.ffi.register_ffi_target(FACTOR_TARGET, jax.ffi.pycapsule(lib.SoftbodyLdlFactor), platform="cpu")
     jax.ffi.register_ffi_target(SOLVE_TARGET, jax.ffi.pycapsule(lib.SoftbodyLdlSolve), platform="cpu")
+    jax.ffi.register_ffi_target(CHECK_TARGET, jax.ffi.pycapsule(lib.SoftbodyCheck), platform="cpu")
     jax.ffi.register_ffi_target(HESSIAN_TARGET, jax.ffi.pycapsule(lib.SoftbodyTetHessianProduct), platform="cpu")
     return lib
 
@@ -106,9 +111,9 @@ def library() -> ctypes.CDLL | None:
     """The compiled native library (built on first call), or ``None`` if it cannot be built.
 
     Returns:
-        A ``ctypes.CDLL`` with ``softbody_ldl_store``, ``softbody_ldl_release``,
-        ``softbody_ldl_solve_host`` and ``softbody_ldl_count``; its FFI targets are
-        registered with XLA as :data:`SOLVE_TARGET` and :data:`HESSIAN_TARGET`. ``None``
+        A ``ctypes.CDLL`` with ``softbody_ldl_symbolic``; its FFI targets are registered
+        with XLA as :data:`FACTOR_TARGET`, :data:`SOLVE_TARGET`, :data:`CHECK_TARGET` and
+        :data:`HESSIAN_TARGET`. ``None``
         when there is no C++ compiler or the build fails (see :func:`unavailable_reason`).
     """
     with _lock:
