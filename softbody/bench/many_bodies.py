@@ -16,11 +16,17 @@ rest).
 *Soft and rigid* (``mixed_cases``, N = 4 and 16; the quick variant N = 4): the same scene
 with every other cube a :class:`~softbody.rigid.RigidBody` (density 500 kg/m^3, the same
 12 triangles), rigid where the numbers of its column and layer add up odd: soft on rigid
-in one column, rigid on soft in the next. Not past 16: the rigid bodies' reduced
-coordinates invert one dense matrix over all their degrees of freedom in each of an
-iteration's 30 sweeps of the pair rows, a cost that grows with the cube of their number.
-At N = 4 a step took 397 ms of CPU against 12 ms for the soft cubes (564 iterations a
-step, median, against 71; each runs the 30 sweeps).
+in one column, rigid on soft in the next. The rigid bodies' small solves in each of an
+iteration's 30 sweeps of the pair rows go body by body (one 6 x 6 block each,
+:attr:`~softbody.skeleton.rig.Rig.tree_dofs`), so an iteration's cost grows linearly with
+their number: 0.61 and 2.66 ms of CPU an iteration at N = 4 and 16 (first 5 steps; with
+one dense matrix over all their degrees of freedom, before: 0.56 and 4.54 ms, and 1.27 at
+N = 8). A step costs about 30 times a soft one's, mostly in iterations: at N = 4, 364 ms
+of CPU against 12 ms (440 iterations a step, median, against 70). At N = 16 the steps
+after the landings stop at the 3000-iteration cap, unconverged (median 3000 iterations,
+9.4 s of CPU a step; 0.37 mm deepest row penetration): the contact iteration of rigid and
+soft bodies resting on each other, not the cost of its sweeps, is what stops this scene
+from growing, so it is not run past 16.
 
 Reported per ``N`` (``cases``): time per step (median of the steps' mean over 3 timed
 rollouts after a compiling one; compile time apart), as wall time (``step_s``) and as the
@@ -35,7 +41,9 @@ argument, output and temporary bytes XLA reports for ``softbody.simulate.step``)
 
 ``time_exponent`` is the slope of log(CPU time per step) against log(N) fitted over the
 soft cases with pair rows (``N >= 4``; ``time_exponent_wall`` the same of the wall time); 1
-is linear. ``all_converged`` and ``max_penetration_m`` are over every case, soft and mixed.
+is linear. ``time_exponent_mixed`` is the same slope over the soft-and-rigid cases (``None``
+with one case, as in the quick variant). ``all_converged`` and ``max_penetration_m`` are
+over every case, soft and mixed.
 """
 
 from __future__ import annotations
@@ -151,10 +159,11 @@ def run(out: Path, quick: bool) -> dict:
               f"{mixed[-1]['iterations_median']:.0f} iterations (median)", flush=True)
     paired = [c for c in cases if c["n"] >= 4]
 
-    def slope(key):
-        if len(paired) < 2:
+    def slope(key, group=paired):
+        group = [c for c in group if c["n"] >= 4]
+        if len(group) < 2:
             return None
-        return float(np.polyfit(np.log([c["n"] for c in paired]), np.log([c[key] for c in paired]), 1)[0])
+        return float(np.polyfit(np.log([c["n"] for c in group]), np.log([c[key] for c in group]), 1)[0])
 
     exponent = slope("step_cpu_s")
 
@@ -179,6 +188,7 @@ def run(out: Path, quick: bool) -> dict:
     return {
         "time_exponent": exponent,
         "time_exponent_wall": slope("step_s"),
+        "time_exponent_mixed": slope("step_cpu_s", mixed),
         "all_converged": all(c["converged"] for c in cases + mixed),
         "max_penetration_m": max(max(c["row_penetration_m"], c["ground_penetration_m"]) for c in cases + mixed),
         "thickness_m": THICKNESS,
