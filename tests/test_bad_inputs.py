@@ -185,13 +185,13 @@ def test_rollout_refuses_a_state_or_params_of_another_model(beam):
 def test_every_rollout_refuses_a_fractional_step_count_or_a_state_of_another_model(beam, no_compiling, monkeypatch):
     """policy_rollout ran int(2.5) = 2 steps; explicit_rollout and newton_rollout took a state
     or params of another model as far as JAX's broadcasting error."""
-    import control as sc
-    import control.policy
+    import softbody.control as sc
+    import softbody.control.policy
 
     from softbody.explicit import explicit_rollout
     from softbody.reference import newton_rollout
 
-    monkeypatch.setattr(control.policy, "_policy_rollout", lambda *a, **k: pytest.fail("policy_rollout compiled"))
+    monkeypatch.setattr(softbody.control.policy, "_policy_rollout", lambda *a, **k: pytest.fail("policy_rollout compiled"))
     model, params = beam
     other, other_params = build(SoftBody(grid_box((0.1, 0.02, 0.02), (2, 1, 1)), Material(), fixed="fixed"))
     state, alien = initial_state(model, params), initial_state(other, other_params)
