@@ -165,6 +165,8 @@ class Reduced(Coordinates):
         def stiffness(jac):
             """The sweep's block ``K = B^T P_b B`` by trees, ``(T, K, K)``, from the
             Jacobian by trees ``jac`` ``(n_b, 3, K)`` (:meth:`Rig.local_jacobian`)."""
+            if n_trees == 1:  # one tree (a jointed skeleton): one contraction, no per-vertex blocks
+                return jnp.einsum("vik,v,vil->kl", jac, p_bone, jac)[None]
             return jax.ops.segment_sum(jnp.einsum("vik,v,vil->vkl", jac, p_bone, jac), vertex_tree, n_trees)
 
         def inverse(k_z, move):
@@ -184,6 +186,8 @@ class Reduced(Coordinates):
 
         def skin_load(b_skin, force):
             """``B_C^T f`` by trees ``(T, K)``: the skin's forces ``f`` ``(c, 3)`` as generalised forces."""
+            if n_trees == 1:
+                return jnp.einsum("cik,ci->k", b_skin, force)[None]
             return jax.ops.segment_sum(jnp.einsum("cik,ci->ck", b_skin, force), skin_tree, n_trees)
 
         def delassus_diagonal(b_skin, k_inv):
