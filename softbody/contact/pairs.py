@@ -192,16 +192,20 @@ def _closest(p, a, b, c):
     return jnp.where(((d1 <= 0) & (d2 <= 0))[..., None], jnp.stack([one, zero, zero], -1), out)  # corner a
 
 
-def _crossing(p0, p1, tri0, tri1):
+def _side(p, tri):
+    """The signed distance ``(...)`` of the points ``p`` ``(..., 3)`` from the planes of the
+    triangles ``tri`` ``(..., 3, 3)``, positive on the side their normals point to."""
+    return jnp.sum((p - tri[..., 0, :]) * _normal(*(tri[..., i, :] for i in range(3))), -1)
+
+
+def _crossing(p0, p1, tri0, tri1, d0, d1):
     """Where the point moving from ``p0`` to ``p1`` ``(..., 3)`` crosses the triangle moving
     from ``tri0`` to ``tri1`` ``(..., 3, 3)`` from its outer side (the side its normal points
     to) to its inner side: the fraction ``s`` of the step ``(...)``, in ``[0, 1)``, or 1
-    where it does not. The plane is taken at the step's start and end and the signed
-    distance interpolated linearly between them (exact for a triangle that translates); the
-    crossing point must lie in the triangle interpolated to ``s`` (with a margin of 1e-9 in
-    barycentric coordinates)."""
-    d0 = jnp.sum((p0 - tri0[..., 0, :]) * _normal(*(tri0[..., i, :] for i in range(3))), -1)
-    d1 = jnp.sum((p1 - tri1[..., 0, :]) * _normal(*(tri1[..., i, :] for i in range(3))), -1)
+    where it does not. The plane is taken at the step's start and end, ``d0`` and ``d1`` the
+    point's signed distances from it there (:func:`_side`), interpolated linearly between
+    them (exact for a triangle that translates); the crossing point must lie in the triangle
+    interpolated to ``s`` (with a margin of 1e-9 in barycentric coordinates)."""
     through = (d0 >= 0) & (d1 < 0)
     s = jnp.clip(d0 / jnp.where(through, d0 - d1, 1.0), 0.0, 1.0)
     at = tri0 + s[..., None, None] * (tri1 - tri0)
@@ -427,8 +431,9 @@ class Touch(PairRows):
         score = dist * (2.0 - jnp.where(dist > 0, aligned, 1.0))
         # a vertex whose straight path through the step crosses a triangle meets the
         # first one it crosses, from the side it came from, however far it ends beyond
-        tri0 = x_start[jnp.asarray(faces)[found.triangle]]
-        crossing = _crossing(x_start[found.vertex], p, tri0, tri)
+        tri0, p0 = x_start[jnp.asarray(faces)[found.triangle]], x_start[found.vertex]
+        d0, d1 = _side(p0, tri0), _side(p, tri)
+        crossing = _crossing(p0, p, tri0, tri, d0, d1)
         # a triangle the path does not cross counts only where the vertex lies in front of
         # its plane (or behind it by at most the thickness) at the step's start and at its
         # predicted end: behind it at the start, the vertex faces the far side of the other
@@ -436,8 +441,7 @@ class Touch(PairRows):
         # edges. Either row, its plane extended, would hold the vertex where the path never
         # meets the body (a fast body's side and far faces, nearest where it ends beyond a
         # thin plate, pulled it through)
-        ahead = (jnp.sum((x_start[found.vertex] - tri0[:, 0]) * _normal(tri0[:, 0], tri0[:, 1], tri0[:, 2]), -1)
-                 >= -params["thickness"]) & (jnp.sum((p - a) * normal, -1) >= -params["thickness"])
+        ahead = (d0 >= -params["thickness"]) & (d1 >= -params["thickness"])
         valid = found.valid & (ahead | (crossing < 1.0)) & self._self_pairs(found, x_start, p, tri)
         score = jnp.where(valid, jnp.where(crossing < 1.0, crossing - 2.0, score), jnp.inf)
         best = jnp.full(len(verts), jnp.inf).at[row].min(score)

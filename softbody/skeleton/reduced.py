@@ -148,7 +148,6 @@ class Reduced(Coordinates):
         p_bone = p[bone, 0]
         owners = np.asarray(rig.bone)[skin]
         index = jnp.asarray(owners)
-        tree = jnp.asarray(rig.tree[rig.vertex_link[skin]])
         valid = problem.free[index, 0] > 0
         # The skeleton's small solves go tree by tree (Rig.tree_dofs): nothing couples two
         # trees' dofs in K = B^T P_b B, so each is one K x K block (6 x 6 for a free rigid
@@ -204,7 +203,7 @@ class Reduced(Coordinates):
         soft = problem.free * (1.0 - rig.is_bone)
         compliance = (soft / p).at[index].set(w_n.mean(axis=1)[:, None])
         body = np.arange(n)
-        body[rig.bone] = n + rig.tree[rig.vertex_link]
+        body[rig.bone] = n + rig.vertex_tree
         # The extra rows hold the skin's contact forces over the effective mass of each skin
         # vertex at the step's start (so that they are displacements, as the other rows).
         scale = (3.0 / jnp.maximum(w_n.sum(axis=1), 1e-300))[:, None]
@@ -217,7 +216,7 @@ class Reduced(Coordinates):
             w = jnp.sum(root**2, axis=1) / 3.0
             near, _, _, _ = law(at, index, valid)
             active = near | jnp.any(force != 0, axis=1)
-            reach = jax.ops.segment_sum(jnp.where(active, root.sum(axis=1), 0.0), tree, len(rig.links))[tree]
+            reach = jax.ops.segment_sum(jnp.where(active, root.sum(axis=1), 0.0), skin_tree, n_trees)[skin_tree]
             bound = root.max(axis=1) * (reach + jnp.where(active, 0.0, root.sum(axis=1)))
             touching, _, correction, _ = law(at - force * w[:, None], index, valid, kinetic=True)
             target = jnp.where(touching[:, None], correction, 0.0) / jnp.where(w > 0, w, 1.0)[:, None]

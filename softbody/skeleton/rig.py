@@ -404,6 +404,10 @@ class Rig:
         """The inverse of :meth:`blocks`: ``(T, K)`` to ``(n_dofs,)`` (padding slots dropped)."""
         return jnp.zeros(self.n_dofs + 1, b.dtype).at[self.tree_dofs].set(b)[:-1]
 
+    def _per_link(self, a: Array) -> Array:
+        """Sums of the per-bone-vertex rows ``a`` ``(n_b, ...)`` over each link: ``(L, ...)``."""
+        return jax.ops.segment_sum(a, jnp.asarray(self.vertex_link), len(self.links), indices_are_sorted=True)
+
     def reduce(self, pose: Pose, force: Array) -> Array:
         """``B^T f``: the generalised force ``(n_dofs,)`` of bone-vertex forces ``f`` ``(n_b, 3)``.
 
@@ -413,12 +417,8 @@ class Rig:
         Jacobian is formed, and the cost is linear in the links.
         """
         link = jnp.asarray(self.vertex_link)
-
-        def per_link(a):
-            return jax.ops.segment_sum(a, link, len(self.links), indices_are_sorted=True)
-
-        centre = per_link(pose.x) / self.link_count[:, None]  # (L, 3)
-        net, moment = per_link(force), per_link(jnp.cross(pose.x - centre[link], force))
+        centre = jnp.einsum("lij,lj->li", pose.r, jnp.asarray(self.rest_mean)) + pose.p  # (L, 3): x = R X + p
+        net, moment = self._per_link(force), self._per_link(jnp.cross(pose.x - centre[link], force))
         u, w = pose.twists[:, :3], pose.twists[:, 3:]  # (L, 3, K)
         u_centre = u + jnp.cross(w, centre[:, :, None], axis=1)
         per_dof = jnp.einsum("li,lik->lk", net, u_centre) + jnp.einsum("li,lik->lk", moment, w)  # (L, K)
@@ -460,16 +460,11 @@ class Rig:
         :meth:`positions`; revolute angles come back in ``(-pi, pi]``.
         """
         n_links = len(self.links)
-        count = self.link_count[:, None]
         rest = jnp.asarray(self.rest)
         link = jnp.asarray(self.vertex_link)
-
-        def per_link(a):
-            return jax.ops.segment_sum(a, link, n_links, indices_are_sorted=True)
-
-        xm = per_link(x_bone) / count
+        xm = self._per_link(x_bone) / self.link_count[:, None]
         rm = jnp.asarray(self.rest_mean)
-        h = per_link(jnp.einsum("vi,vj->vij", x_bone - xm[link], rest - rm[link]))
+        h = self._per_link(jnp.einsum("vi,vj->vij", x_bone - xm[link], rest - rm[link]))
         r = jnp.moveaxis(rot.polar(jnp.moveaxis(h, 0, -1), iterations=3), -1, 0)
         p = xm - jnp.einsum("lij,lj->li", r, rm)
         par = np.where(self.parent >= 0, self.parent, n_links)
