@@ -248,8 +248,8 @@ def test_activations_out_of_bounds_are_refused_when_concrete_and_clipped_when_tr
     traced = jax.make_jaxpr(lambda c: rollout(model, params, state, controls=c, throw=False))(jnp.full((1, 1), 1.5))
     assert "callback" not in str(traced)
     assert "clipped to the bounds without an error or a flag" in " ".join(rollout.__doc__.split())
-    readme = " ".join((ROOT / "README.md").read_text().split())
-    assert "under `jax.jit`/`jax.grad`/`jax.vmap` their values are unknown: there they are clipped" in readme
+    sharp_bits = " ".join((ROOT / "docs" / "sharp-bits.md").read_text().split())
+    assert "under `jax.jit`/`jax.grad`/`jax.vmap` their values are unknown: there they are clipped" in sharp_bits
 
 
 # --------------------------------------------------------------------------------------
