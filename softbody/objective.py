@@ -165,7 +165,7 @@ def step_hessian(model: Model, prep: Prepared, x_n, v_n, q_n, activation, force,
     _, tangent = jax.linearize(lambda f: terms.tet(f, q)[1], f)
     # Nine tangents one by one (vmapped, the same took 3-4x longer on CPU).
     eye = jnp.eye(9, dtype=f.dtype).reshape(9, 3, 3, 1)
-    dpdf = jnp.stack([tangent(jnp.broadcast_to(e, f.shape)) for e in eye])  # (kl, i, j, t)
+    dpdf = jax.lax.map(lambda e: tangent(jnp.broadcast_to(e, f.shape)), eye)  # (kl, i, j, t)
     diagonal = prep.inertia.hessian_diagonal(prep.mass, prep.mass_alpha)
     vertex = jax.linearize(lambda x: terms.vertex(x)[1], x)[1] if has_vertex_terms(model) else None
 

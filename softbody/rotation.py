@@ -60,10 +60,22 @@ def matmul(a: Mat, b: Mat) -> Mat:
     Written as explicit sums of elementwise products: XLA fuses these into one loop over
     tets, where an ``einsum`` becomes a slow batched dot with tiny matrices.
     """
+    a, b = _entries(a), _entries(b)
     return jnp.stack([
-        jnp.stack([a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j] for j in range(3)])
+        jnp.stack([a[i][0] * b[0][j] + a[i][1] * b[1][j] + a[i][2] * b[2][j] for j in range(3)])
         for i in range(3)
     ])
+
+
+def _entries(a: Mat) -> list[list[jax.Array]]:
+    """The nine entries ``(T,)`` of ``(3, 3, T)`` ``a`` as nested lists ``e[i][j]``.
+
+    One reshape and one unstack: indexing each entry where it is used (``a[i, j]``) costs a
+    slice and a squeeze every time, which multiplied the programs' size and the time to
+    trace them (and their derivatives) without changing what XLA runs.
+    """
+    e = jnp.unstack(a.reshape((9,) + a.shape[2:]))
+    return [e[0:3], e[3:6], e[6:9]]
 
 
 def transpose(a: Mat) -> Mat:
@@ -80,13 +92,14 @@ def _solve_sym3(h: Mat, b: jax.Array) -> tuple[jax.Array, jax.Array]:
 
     Returns ``(x, det)``; ``x`` is meaningless where ``det`` is ~0 (callers mask).
     """
-    c00 = h[1, 1] * h[2, 2] - h[1, 2] * h[2, 1]
-    c01 = h[1, 2] * h[2, 0] - h[1, 0] * h[2, 2]
-    c02 = h[1, 0] * h[2, 1] - h[1, 1] * h[2, 0]
-    c11 = h[0, 0] * h[2, 2] - h[0, 2] * h[2, 0]
-    c12 = h[0, 1] * h[2, 0] - h[0, 0] * h[2, 1]
-    c22 = h[0, 0] * h[1, 1] - h[0, 1] * h[1, 0]
-    det = h[0, 0] * c00 + h[0, 1] * c01 + h[0, 2] * c02
+    h = _entries(h)
+    c00 = h[1][1] * h[2][2] - h[1][2] * h[2][1]
+    c01 = h[1][2] * h[2][0] - h[1][0] * h[2][2]
+    c02 = h[1][0] * h[2][1] - h[1][1] * h[2][0]
+    c11 = h[0][0] * h[2][2] - h[0][2] * h[2][0]
+    c12 = h[0][1] * h[2][0] - h[0][0] * h[2][1]
+    c22 = h[0][0] * h[1][1] - h[0][1] * h[1][0]
+    det = h[0][0] * c00 + h[0][1] * c01 + h[0][2] * c02
     safe = jnp.where(jnp.abs(det) > 0, det, 1.0)
     x0 = (c00 * b[0] + c01 * b[1] + c02 * b[2]) / safe
     x1 = (c01 * b[0] + c11 * b[1] + c12 * b[2]) / safe
@@ -107,7 +120,8 @@ def _sym(a: Mat) -> Mat:
 def dot(a: Mat, b: Mat) -> jax.Array:
     """Frobenius inner products ``sum_ij a_ij b_ij``, shape ``(T,)`` (explicit sum: XLA's
     reductions over the leading axes of ``(3, 3, T)`` are several times slower)."""
-    return sum(a[i, j] * b[i, j] for i in range(3) for j in range(3))
+    a, b = _entries(a), _entries(b)
+    return sum(a[i][j] * b[i][j] for i in range(3) for j in range(3))
 
 
 def trace(a: Mat) -> jax.Array:
@@ -191,36 +205,39 @@ def _rotation_jvp(iterations, primals, tangents):
 
 def _cofactor(a: Mat) -> Mat:
     """Cofactor matrices ``cof(a) = det(a) a^-T``, shape (3, 3, T)."""
+    a = _entries(a)
     return jnp.stack([
-        jnp.stack([a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1], a[1, 2] * a[2, 0] - a[1, 0] * a[2, 2],
-                   a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0]]),
-        jnp.stack([a[0, 2] * a[2, 1] - a[0, 1] * a[2, 2], a[0, 0] * a[2, 2] - a[0, 2] * a[2, 0],
-                   a[0, 1] * a[2, 0] - a[0, 0] * a[2, 1]]),
-        jnp.stack([a[0, 1] * a[1, 2] - a[0, 2] * a[1, 1], a[0, 2] * a[1, 0] - a[0, 0] * a[1, 2],
-                   a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]]),
+        jnp.stack([a[1][1] * a[2][2] - a[1][2] * a[2][1], a[1][2] * a[2][0] - a[1][0] * a[2][2],
+                   a[1][0] * a[2][1] - a[1][1] * a[2][0]]),
+        jnp.stack([a[0][2] * a[2][1] - a[0][1] * a[2][2], a[0][0] * a[2][2] - a[0][2] * a[2][0],
+                   a[0][1] * a[2][0] - a[0][0] * a[2][1]]),
+        jnp.stack([a[0][1] * a[1][2] - a[0][2] * a[1][1], a[0][2] * a[1][0] - a[0][0] * a[1][2],
+                   a[0][0] * a[1][1] - a[0][1] * a[1][0]]),
     ])
 
 
 def det3(a: Mat) -> jax.Array:
     """Determinants of ``(3, 3, T)`` matrices, shape ``(T,)``."""
-    return (a[0, 0] * (a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1])
-            - a[0, 1] * (a[1, 0] * a[2, 2] - a[1, 2] * a[2, 0])
-            + a[0, 2] * (a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0]))
+    a = _entries(a)
+    return (a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1])
+            - a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0])
+            + a[0][2] * (a[1][0] * a[2][1] - a[1][1] * a[2][0]))
 
 
 def mat_to_quat(r: Mat) -> Quat:
     """Unit quaternions ``(4, T)`` of rotation matrices ``(3, 3, T)`` (Shepperd's method)."""
-    t = r[0, 0] + r[1, 1] + r[2, 2]
-    cands = jnp.stack([t, r[0, 0], r[1, 1], r[2, 2]])
+    r = _entries(r)
+    t = r[0][0] + r[1][1] + r[2][2]
+    cands = jnp.stack([t, r[0][0], r[1][1], r[2][2]])
     k = jnp.argmax(cands, axis=0)
     s0 = jnp.sqrt(jnp.maximum(1 + t, 1e-300)) * 2
-    s1 = jnp.sqrt(jnp.maximum(1 + r[0, 0] - r[1, 1] - r[2, 2], 1e-300)) * 2
-    s2 = jnp.sqrt(jnp.maximum(1 - r[0, 0] + r[1, 1] - r[2, 2], 1e-300)) * 2
-    s3 = jnp.sqrt(jnp.maximum(1 - r[0, 0] - r[1, 1] + r[2, 2], 1e-300)) * 2
-    q0 = jnp.stack([s0 / 4, (r[2, 1] - r[1, 2]) / s0, (r[0, 2] - r[2, 0]) / s0, (r[1, 0] - r[0, 1]) / s0])
-    q1 = jnp.stack([(r[2, 1] - r[1, 2]) / s1, s1 / 4, (r[0, 1] + r[1, 0]) / s1, (r[0, 2] + r[2, 0]) / s1])
-    q2 = jnp.stack([(r[0, 2] - r[2, 0]) / s2, (r[0, 1] + r[1, 0]) / s2, s2 / 4, (r[1, 2] + r[2, 1]) / s2])
-    q3 = jnp.stack([(r[1, 0] - r[0, 1]) / s3, (r[0, 2] + r[2, 0]) / s3, (r[1, 2] + r[2, 1]) / s3, s3 / 4])
+    s1 = jnp.sqrt(jnp.maximum(1 + r[0][0] - r[1][1] - r[2][2], 1e-300)) * 2
+    s2 = jnp.sqrt(jnp.maximum(1 - r[0][0] + r[1][1] - r[2][2], 1e-300)) * 2
+    s3 = jnp.sqrt(jnp.maximum(1 - r[0][0] - r[1][1] + r[2][2], 1e-300)) * 2
+    q0 = jnp.stack([s0 / 4, (r[2][1] - r[1][2]) / s0, (r[0][2] - r[2][0]) / s0, (r[1][0] - r[0][1]) / s0])
+    q1 = jnp.stack([(r[2][1] - r[1][2]) / s1, s1 / 4, (r[0][1] + r[1][0]) / s1, (r[0][2] + r[2][0]) / s1])
+    q2 = jnp.stack([(r[0][2] - r[2][0]) / s2, (r[0][1] + r[1][0]) / s2, s2 / 4, (r[1][2] + r[2][1]) / s2])
+    q3 = jnp.stack([(r[1][0] - r[0][1]) / s3, (r[0][2] + r[2][0]) / s3, (r[1][2] + r[2][1]) / s3, s3 / 4])
     q = jnp.select([k == 0, k == 1, k == 2], [q0, q1, q2], q3)
     return q * jax.lax.rsqrt(q[0] ** 2 + q[1] ** 2 + q[2] ** 2 + q[3] ** 2)
 
