@@ -83,14 +83,15 @@ def scatter_stress(model, dminv: Array, stress: Array) -> Array:
     # K gathered rows one by one is ~1.5x faster than XLA's reduce over them, and one
     # (K, n) gather per coordinate (not K gathers) keeps the reverse-mode transpose to one
     # scatter-add (~4x faster than K of them).
+    s, g = rot.entries(stress), rot.entries(g)
     corner = jnp.stack([
-        jnp.concatenate([stress[i, 0] * g[a, 0] + stress[i, 1] * g[a, 1] + stress[i, 2] * g[a, 2]
+        jnp.concatenate([s[i][0] * g[a][0] + s[i][1] * g[a][1] + s[i][2] * g[a][2]
                          for a in range(4)] + [jnp.zeros(1, stress.dtype)])
         for i in range(3)
     ])
     incidence = jnp.asarray(model.corner_incidence.T)  # (K, n)
-    gathered = [corner[i][incidence] for i in range(3)]  # (K, n) each
-    return jnp.stack([sum(g[k] for k in range(len(incidence))) for g in gathered], axis=1)
+    gathered = [jnp.unstack(corner[i][incidence]) for i in range(3)]  # K rows (n,) each
+    return jnp.stack([sum(rows) for rows in gathered], axis=1)
 
 
 #: ``(a, b)``, ``a <= b``, of a symmetric ``9 x 9`` matrix's packed upper triangle, row by row.

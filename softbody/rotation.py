@@ -60,22 +60,24 @@ def matmul(a: Mat, b: Mat) -> Mat:
     Written as explicit sums of elementwise products: XLA fuses these into one loop over
     tets, where an ``einsum`` becomes a slow batched dot with tiny matrices.
     """
-    a, b = _entries(a), _entries(b)
+    a, b = entries(a), entries(b)
     return jnp.stack([
         jnp.stack([a[i][0] * b[0][j] + a[i][1] * b[1][j] + a[i][2] * b[2][j] for j in range(3)])
         for i in range(3)
     ])
 
 
-def _entries(a: Mat) -> list[list[jax.Array]]:
-    """The nine entries ``(T,)`` of ``(3, 3, T)`` ``a`` as nested lists ``e[i][j]``.
+def entries(a: jax.Array) -> list[list[jax.Array]]:
+    """The entries ``(T,)`` of ``(r, c, T)`` ``a`` (a ``(3, 3, T)`` matrix) as nested lists
+    ``e[i][j]``.
 
     One reshape and one unstack: indexing each entry where it is used (``a[i, j]``) costs a
     slice and a squeeze every time, which multiplied the programs' size and the time to
     trace them (and their derivatives) without changing what XLA runs.
     """
-    e = jnp.unstack(a.reshape((9,) + a.shape[2:]))
-    return [e[0:3], e[3:6], e[6:9]]
+    rows, cols = a.shape[:2]
+    e = jnp.unstack(a.reshape((rows * cols,) + a.shape[2:]))
+    return [e[i * cols:(i + 1) * cols] for i in range(rows)]
 
 
 def transpose(a: Mat) -> Mat:
@@ -92,7 +94,7 @@ def _solve_sym3(h: Mat, b: jax.Array) -> tuple[jax.Array, jax.Array]:
 
     Returns ``(x, det)``; ``x`` is meaningless where ``det`` is ~0 (callers mask).
     """
-    h = _entries(h)
+    h = entries(h)
     c00 = h[1][1] * h[2][2] - h[1][2] * h[2][1]
     c01 = h[1][2] * h[2][0] - h[1][0] * h[2][2]
     c02 = h[1][0] * h[2][1] - h[1][1] * h[2][0]
@@ -120,12 +122,13 @@ def _sym(a: Mat) -> Mat:
 def dot(a: Mat, b: Mat) -> jax.Array:
     """Frobenius inner products ``sum_ij a_ij b_ij``, shape ``(T,)`` (explicit sum: XLA's
     reductions over the leading axes of ``(3, 3, T)`` are several times slower)."""
-    a, b = _entries(a), _entries(b)
+    a, b = entries(a), entries(b)
     return sum(a[i][j] * b[i][j] for i in range(3) for j in range(3))
 
 
 def trace(a: Mat) -> jax.Array:
-    return a[0, 0] + a[1, 1] + a[2, 2]
+    a = entries(a)
+    return a[0][0] + a[1][1] + a[2][2]
 
 
 def _newton_step(f: Mat, q: Quat) -> Quat:
@@ -205,7 +208,7 @@ def _rotation_jvp(iterations, primals, tangents):
 
 def _cofactor(a: Mat) -> Mat:
     """Cofactor matrices ``cof(a) = det(a) a^-T``, shape (3, 3, T)."""
-    a = _entries(a)
+    a = entries(a)
     return jnp.stack([
         jnp.stack([a[1][1] * a[2][2] - a[1][2] * a[2][1], a[1][2] * a[2][0] - a[1][0] * a[2][2],
                    a[1][0] * a[2][1] - a[1][1] * a[2][0]]),
@@ -218,7 +221,7 @@ def _cofactor(a: Mat) -> Mat:
 
 def det3(a: Mat) -> jax.Array:
     """Determinants of ``(3, 3, T)`` matrices, shape ``(T,)``."""
-    a = _entries(a)
+    a = entries(a)
     return (a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1])
             - a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0])
             + a[0][2] * (a[1][0] * a[2][1] - a[1][1] * a[2][0]))
@@ -226,7 +229,7 @@ def det3(a: Mat) -> jax.Array:
 
 def mat_to_quat(r: Mat) -> Quat:
     """Unit quaternions ``(4, T)`` of rotation matrices ``(3, 3, T)`` (Shepperd's method)."""
-    r = _entries(r)
+    r = entries(r)
     t = r[0][0] + r[1][1] + r[2][2]
     cands = jnp.stack([t, r[0][0], r[1][1], r[2][2]])
     k = jnp.argmax(cands, axis=0)
