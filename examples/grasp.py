@@ -23,7 +23,8 @@ Run::
 
 Writes ``metrics.json`` (per object ``lift_m``, ``slip_m``, convergence and iteration
 counts), a result file per object (``rigid_box.npz``, ``soft_cube.npz``: ``softbody view``
-opens them) and a render of each one's last frame (``rigid_box.png``, ``soft_cube.png``).
+opens them; "colour by" ``contact_force`` or ``contact_state`` shows the contact between
+the fingers, the object and the table) and a render of each one's last frame (``rigid_box.png``, ``soft_cube.png``).
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ from softbody.meshing.grid import grid_box
 from softbody.model import Options, build, initial_state
 from softbody.rigid import RigidBody
 from softbody.scene import SoftBody
-from softbody.simulate import rollout
+from softbody.simulate import contact_fields, rollout
 
 DT, DURATION = 0.01, 1.5
 N_STEPS = round(DURATION / DT)
@@ -141,6 +142,7 @@ def save_result(model, params, traj, controls, path, metrics):
     """Write the trajectory as a result file for ``softbody view`` / ``softbody render``."""
     obstacles = [o.to_dict(p) for o, p in zip(model.obstacles, params.obstacles)]
     result = Result.from_mesh(model.mesh, np.asarray(traj.x), DT, obstacles=obstacles,
+                              fields=contact_fields(model, params, traj, controls),
                               activation=np.concatenate([controls[:1] * 0.0, controls]),
                               channel_names=list(model.channel_names), metadata={"grasp": metrics})
     return result.save(path, force=True)

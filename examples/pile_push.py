@@ -33,7 +33,7 @@ Writes ``metrics.json`` (``gradient_simulations`` and ``cmaes_simulations`` to t
 threshold (null if not reached), their final losses and wall times, ``fd_rel_error``, the
 cost of one simulation and one gradient, per-step convergence, ...), ``loss.png`` (best
 loss against simulations for both methods) and ``pile_push.npz`` (the gradient method's
-push; ``softbody view`` opens it).
+push; ``softbody view`` opens it, "colour by" ``contact_force`` or ``contact_state`` shows the contact).
 """
 
 from __future__ import annotations
@@ -59,7 +59,7 @@ from softbody.io import Result, check_overwrite, write_metrics
 from softbody.material import Material
 from softbody.model import Options, build, initial_state
 from softbody.scene import SoftBody
-from softbody.simulate import rollout
+from softbody.simulate import contact_fields, rollout
 
 EDGE, GAP, RUN_UP = 0.02, 0.003, 0.01  # cube edge, gap in the pile, striker to pile (m)
 MU, THICKNESS = 0.3, 1e-3
@@ -301,6 +301,7 @@ def main(argv=None):
     _plot(args.out, grad_hist, cma)
     obstacles = [o.to_dict(p) for o, p in zip(model.obstacles, problem.params.obstacles)]
     Result.from_mesh(model.mesh, np.asarray(final.x), DT, obstacles=obstacles,
+                     fields=contact_fields(model, problem.params, final),
                      metadata={"pile_push": {"theta": grad_theta.tolist(), "loss_mm2": metrics["gradient_final_loss"]}}
                      ).save(args.out / "pile_push.npz", force=True)
     metrics["wall_time_s"] = time.perf_counter() - start

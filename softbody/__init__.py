@@ -68,8 +68,8 @@ _NAMES = {
     "Contact": "softbody.contact",
     "Touch": "softbody.contact.pairs",
     "RESULTS": "softbody._types",
-    **dict.fromkeys(("BDF2", "ImplicitEuler", "SimulationError", "Trajectory", "check_trajectory", "contact_forces",
-                    "rollout", "solve_static", "step"), "softbody.simulate"),
+    **dict.fromkeys(("BDF2", "ImplicitEuler", "SimulationError", "Trajectory", "check_trajectory", "contact_fields",
+                    "contact_forces", "rollout", "solve_static", "step"), "softbody.simulate"),
     **dict.fromkeys(("LBFGS", "LocalGlobal"), "softbody.solvers"),
     **dict.fromkeys(("Adjoint", "Implicit", "ImplicitForward", "Unrolled", "check_grad"), "softbody.gradients"),
 }

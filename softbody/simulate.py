@@ -451,6 +451,33 @@ def contact_forces(model: Model, params: Params, traj: Trajectory, controls=None
     return _contact_forces(model, params, traj.x, traj.v, controls, forces, jnp.asarray(t0, jnp.float64))
 
 
+def contact_fields(model: Model, params: Params, traj: Trajectory, controls=None, forces=None,
+                   t0: float = 0.0) -> dict[str, np.ndarray]:
+    """:func:`contact_forces` as per-vertex fields of a result file, one row per frame.
+
+    Pass them as ``Result(fields=...)`` (:class:`softbody.io.Result`): the viewer's and
+    ``softbody render``'s "colour by" list then offers them, and the ParaView export
+    writes them. Rows between bodies report on both sides (the touching vertex and the
+    triangle's or edge's vertices), obstacles on the vertex they hold.
+
+    Arguments:
+        model, params, traj, controls, forces, t0: as for :func:`contact_forces`.
+
+    Returns:
+        ``{"contact_force": (T + 1, n), "contact_state": (T + 1, n)}`` float64: each
+        vertex's contact force magnitude (N) and state code (0: none, 1: stick, 2: slide,
+        :data:`softbody.contact.CONTACT_STATES`) at the end of each step; frame 0, the
+        initial state, is zero (no step has acted there).
+
+    Raises:
+        SceneError: as :func:`contact_forces`.
+    """
+    force, state = (np.asarray(a) for a in contact_forces(model, params, traj, controls, forces, t0))
+    first = np.zeros((1, force.shape[1]))
+    return {"contact_force": np.concatenate([first, np.linalg.norm(force, axis=-1)]),
+            "contact_state": np.concatenate([first, state.astype(np.float64)])}
+
+
 @functools.partial(jax.jit, static_argnums=0)
 def _contact_forces(model, params, xs, vs, controls, forces, t0):
     integrator = integrator_of(model)

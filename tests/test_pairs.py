@@ -23,7 +23,8 @@ from softbody.model import Options, SceneError, build, initial_state, prepare
 from softbody.contact.pairs import Touch, every_pair
 from softbody.rigid import RigidBody
 from softbody.scene import SoftBody
-from softbody.simulate import SimulationError, check_trajectory, contact_forces, rollout
+from softbody.io import Result, color_options, vertex_values
+from softbody.simulate import SimulationError, check_trajectory, contact_fields, contact_forces, rollout
 from softbody._types import RESULTS
 
 from test_rigid import box
@@ -89,6 +90,16 @@ def test_block_rests_on_slab(scene):
     mass = np.asarray(prepare(model, params).mass)[N_SLAB:].sum()
     np.testing.assert_allclose(force[-1, N_SLAB:, 2].sum(), mass * G, rtol=1e-6)
     assert (state[-1, N_SLAB:] == 1).sum() >= 4  # the base's rows stick
+    # the rows act on both sides: the slab's vertices carry the opposite force
+    np.testing.assert_allclose(force[-1, :N_SLAB].sum(axis=0), -force[-1, N_SLAB:].sum(axis=0), rtol=0,
+                               atol=1e-6 * mass * G)
+    assert (state[-1, :N_SLAB] == 1).sum() >= 4
+    # a result file carries them as fields the viewer and renders colour by (frame 0: no step yet)
+    result = Result.from_mesh(model.mesh, traj.x, DT, fields=contact_fields(model, params, traj))
+    assert {"contact_force", "contact_state"} <= set(color_options(result))
+    np.testing.assert_array_equal(vertex_values(result, "contact_force")[1:], np.linalg.norm(force, axis=-1))
+    np.testing.assert_array_equal(vertex_values(result, "contact_state")[1:], state)
+    assert not result.fields["contact_force"][0].any() and not result.fields["contact_state"][0].any()
     centre = x[:, N_SLAB:].mean(axis=1)
     assert np.abs(centre[20:] - centre[20]).max() < 1e-4  # drift below 0.1 mm over the last 0.1 s
     # the slab carries the block's weight: its base deflects by less than the thickness
