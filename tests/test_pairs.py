@@ -411,6 +411,45 @@ def test_crossed_edges_hold_a_box_on_a_ridge():
             assert int(RESULTS.tunnelled) in result.tolist() and lowest.min() < 0
 
 
+@pytest.mark.slow
+def test_gradients_through_edge_rows_match_central_differences():
+    """A soft 2 cm cube turned 45 degrees about y, its lowest edge on a held ridge (a cube
+    turned 45 degrees about x), slides across it at 0.2 m/s: only their edges meet, crossed
+    (edge-edge rows, kinetic friction). d(its final mean x)/d(mu_k, v0) against central
+    differences (their value is steady to 1e-5 over steps 3e-6 to 3e-5) within 1e-4: the
+    rows' weights follow the closest points of the solution, and so does the derivative.
+    (With them held at the step's predicted end the derivatives were 0.36 % and 0.15 % off.)"""
+    c = np.cos(np.pi / 4)
+    about_x = np.array([[1, 0, 0], [0, c, -c], [0, c, c]])
+    about_y = np.array([[c, 0, c], [0, 1, 0], [-c, 0, c]])
+    cube = grid_box((0.02,) * 3, (1,) * 3, origin=(-0.01, -0.01, -0.01))
+    top = 0.01 * np.sqrt(2)
+    ridge = SoftBody(dataclasses.replace(cube, points=cube.points @ about_x.T), Material(E=1e6),
+                     fixed=lambda p: np.ones(len(p), bool), name="ridge")
+    upper = SoftBody(dataclasses.replace(cube, points=cube.points @ about_y.T + [0.0, 0.0, 2 * top + THICKNESS]),
+                     Material(E=1e6, nu=0.3, density=500.0), name="upper")
+    model, params = build([ridge, upper], rows=[Touch("upper", "ridge", mu_s=0.4, mu_k=0.3, thickness=THICKNESS,
+                                                      edges=True)],
+                          options=Options(dt=DT, tol=1e-11, max_iter=5000))
+    start = cube.n_vertices
+
+    def final_x(mu_k, v0):
+        p = eqx.tree_at(lambda p: p.rows[0]["mu_k"], params, mu_k)
+        state = initial_state(model)
+        state = eqx.tree_at(lambda s: s.v, state, state.v.at[start:, 0].set(v0))
+        return jnp.mean(rollout(model, p, state, n_steps=4).x[-1, start:, 0])
+
+    at = (jnp.asarray(0.3), jnp.asarray(0.2))
+    grads = jax.jit(jax.grad(final_x, argnums=(0, 1)))(*at)
+    value = jax.jit(final_x)
+    for i, g in enumerate(grads):
+        eps = 1e-5
+        plus = [a + eps * (j == i) for j, a in enumerate(at)]
+        minus = [a - eps * (j == i) for j, a in enumerate(at)]
+        fd = (value(*plus) - value(*minus)) / (2 * eps)
+        assert abs(float(g) - float(fd)) <= 1e-4 * abs(float(fd)), (i, float(g), float(fd))
+
+
 def test_self_contact_holds_a_fork_closing_on_itself():
     """A soft fork (two 1 cm arms 5 mm apart, joined and held at x = 0, the lower one on the
     ground) whose upper arm sags under gravity onto the lower one: with self-contact its
