@@ -127,8 +127,7 @@ def dot(a: Mat, b: Mat) -> jax.Array:
 
 
 def trace(a: Mat) -> jax.Array:
-    a = entries(a)
-    return a[0][0] + a[1][1] + a[2][2]
+    return a[0, 0] + a[1, 1] + a[2, 2]
 
 
 def _newton_step(f: Mat, q: Quat) -> Quat:
