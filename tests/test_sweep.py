@@ -194,6 +194,7 @@ def test_importing_softbody_does_not_need_ray_and_a_missing_ray_names_the_instal
 # ------------------------------------------------------------------------------ sweeps on Ray
 
 
+@pytest.mark.slow  # 64 points on two Ray workers and the 64 in-process references: ~3 min
 def test_a_64_point_sweep_gives_the_in_process_metrics(cluster, reference, tmp_path):
     setups = tmp_path / "setups.log"
     res = sw.run_sweep(beam_point, sw.grid(GRID), setup=functools.partial(beam_setup, log=str(setups)),
@@ -215,6 +216,7 @@ def test_a_64_point_sweep_gives_the_in_process_metrics(cluster, reference, tmp_p
     assert dz[(repr(GRID["E"][0]), "0.01")] < dz[(repr(GRID["E"][-1]), "0.01")] < 0
 
 
+@pytest.mark.slow  # 64 points, a worker killed and replaced: ~2 min
 def test_a_worker_killed_mid_point_loses_no_point(cluster, reference, tmp_path):
     points = sw.grid(GRID)
     victim = 21
@@ -232,6 +234,7 @@ def test_a_worker_killed_mid_point_loses_no_point(cluster, reference, tmp_path):
     assert all(r["pid"] != str(killed_pid) for r in res.rows if r["index"] == victim)
 
 
+@pytest.mark.slow  # three sweeps, each starting its workers: ~2-4 min
 def test_a_stopped_sweep_resumes_with_only_the_missing_points(cluster, reference, tmp_path):
     points = sw.grid(GRID)[:16]
     log, out = tmp_path / "evaluations.log", tmp_path / "beam.csv"
