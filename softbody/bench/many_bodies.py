@@ -24,9 +24,14 @@ one dense matrix over all their degrees of freedom, before: 0.56 and 4.54 ms, an
 N = 8). A step costs about 30 times a soft one's, mostly in iterations: at N = 4, 364 ms
 of CPU against 12 ms (440 iterations a step, median, against 70). At N = 16 the steps
 after the landings stop at the 3000-iteration cap, unconverged (median 3000 iterations,
-9.4 s of CPU a step; 0.37 mm deepest row penetration): the contact iteration of rigid and
-soft bodies resting on each other, not the cost of its sweeps, is what stops this scene
-from growing, so it is not run past 16.
+9.4 s of CPU a step; 0.37 mm deepest row penetration). Measured again on 2026-12-07 (30
+steps, one core): the upper layer's landing step (step 5) stops at the cap and its surfaces
+pass through each other (23 surface pairs, ``RESULTS.tunnelled``; 27 at a35c003, before the
+edge rows followed their closest points), and all 24 steps after it fail
+(cap, overflow or tunnelled), 11.7 s of CPU a step. The soft N = 16 pile converges in every
+step at both commits (46-414 iterations, 1377 at a35c003 in its step 3). The contact
+iteration of rigid and soft bodies resting on each other, not the cost of its sweeps, is
+what stops this scene from growing, so it is not run past 16.
 
 Reported per ``N`` (``cases``): time per step (median of the steps' mean over 3 timed
 rollouts after a compiling one; compile time apart), as wall time (``step_s``) and as the
