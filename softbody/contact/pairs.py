@@ -66,7 +66,7 @@ depend on them: ``n`` is normal to both edges); its weights ``(1 - s, s, t - 1, 
 the force acts at the closest points of the step's solution and the step's derivative
 follows them. (Held at their values at the step's predicted end, they made
 d(final position)/d(mu_k, v0) of a cube sliding across a ridge 0.36% and 0.15% off central
-differences; 4e-5 and 3e-7 now.) At half the
+differences; 2e-5 and 2e-6 now.) At half the
 thickness the rows stay idle in flat contact (the faces rest a full thickness apart) and
 hold where only edges meet. They are opt-in, ``Touch(..., edges=True)``: where soft faces
 press on each other's edges they can slow the contact iteration down (the 2 mm shifted
