@@ -63,7 +63,7 @@ from softbody.simulate import contact_fields, rollout
 
 EDGE, GAP, RUN_UP = 0.02, 0.003, 0.01  # cube edge, gap in the pile, striker to pile (m)
 MU, THICKNESS = 0.3, 1e-3
-DT, N_STEPS, TOL, MAX_ITER = 0.01, 30, 2e-6, 5000
+DT, N_STEPS, TOL, MAX_ITER = 0.01, 30, 2e-6, 20000
 PILE = ("c0", "c1", "c2", "c3")
 TRUE = np.array([1.1, 0.15, 0.1])  # the hidden push: vx, vy, corner speed of the spin (m/s)
 START = np.array([0.7, -0.1, 0.0])
