@@ -16,7 +16,7 @@ import pile_push
 @pytest.mark.slow
 def test_gradient_push_reaches_the_targets():
     """L-BFGS-B on the gradient through the rollout reaches the loss threshold (0.5 mm RMS
-    over the four cubes) within 12 simulations, from a start 100 times above it, and every
+    over the four cubes) within 16 simulations (12 measured), from a start 100 times above it, and every
     step of the hidden push's, the start's and the final push's rollouts converged. (Some
     rollouts in between do not: steps at the iteration cap, or surfaces passing through
     each other in the impact; their counts are in ``history["failed"]``, see
@@ -32,7 +32,7 @@ def test_gradient_push_reaches_the_targets():
     assert int(failed0) == 0 and float(loss0) > 100 * pile_push.THRESHOLD
     assert np.all(np.isfinite(np.asarray(grad)))
 
-    history = pile_push.gradient_run(problem, budget=12)
+    history = pile_push.gradient_run(problem, budget=16)
     assert min(history["loss"]) <= pile_push.THRESHOLD, history["loss"]
     best = history["theta"][int(np.argmin(history["loss"]))]
     final = problem.trajectory(jnp.asarray(best))
