@@ -210,12 +210,17 @@ class Params(eqx.Module):
 
 class State(eqx.Module):
     """Simulation state: positions ``x`` and velocities ``v`` ``(n, 3)``, rotations ``rot``
-    ``(4, t)`` (warm start of the local step) and the time ``t`` (s)."""
+    ``(4, t)`` (warm start of the local step), the time ``t`` (s) and, in a scene with
+    contact rows between bodies, ``contact``: the ``(m, 3)`` forces (N) of its ``m`` pair
+    rows at the end of the last step, from which the next step's contact iteration starts
+    (its warm start: the step's solution does not depend on it, only the iterations it
+    takes; ``None`` starts from zero forces)."""
 
     x: Array
     v: Array
     rot: Array
     t: Array
+    contact: Array | None = None
 
 
 def _update(h, obj) -> None:
@@ -297,6 +302,12 @@ class Model:
     def has_contact(self) -> bool:
         """Whether the scene has contact rows: obstacles or other row generators."""
         return bool(self.obstacles or self.rows)
+
+    @property
+    def n_pair_rows(self) -> int:
+        """The number of contact rows between bodies (:class:`~softbody._interfaces.PairRows`,
+        over all its generators): the rows of :attr:`State.contact`."""
+        return sum(generator.size for generator in self.rows if generator.kind == "pair")
 
     @functools.cached_property
     def contact_blocks(self) -> np.ndarray | None:

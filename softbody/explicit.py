@@ -70,7 +70,7 @@ class SymplecticEuler(Integrator):
         info = StepInfo(iterations=zero, evaluations=jnp.asarray(1), residual=jnp.asarray(0.0),
                         converged=jnp.asarray(True), inverted=zero, result=jnp.asarray(0, jnp.int32),
                         fallback=jnp.asarray(False), overflow=jnp.asarray(False), tunnelled=jnp.asarray(0, jnp.int32))
-        return State(x=x, v=v, rot=q, t=state.t + self.dt), memory, info
+        return State(x=x, v=v, rot=q, t=state.t + self.dt, contact=state.contact), memory, info
 
     def templates(self, model: Model, call: str) -> tuple[str, ...]:
         unstable = (f"step {{step}}: the explicit state became non-finite at dt = {model.options.dt:g} s; the step "

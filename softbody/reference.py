@@ -326,7 +326,7 @@ def _newton_step(model, prep, state, activation, force, tol, max_iter):
     x0 = jnp.where(free > 0, state.x + h * state.v, state.x)
     x, q, iters, evals, residual = _newton(model, prep, state.x, state.v, state.rot, activation, force, x0,
                                            tol=tol, max_iter=max_iter)
-    return State(x=x, v=(x - state.x) / h, rot=q, t=state.t + h), iters, evals, residual
+    return State(x=x, v=(x - state.x) / h, rot=q, t=state.t + h, contact=state.contact), iters, evals, residual
 
 
 def newton_rollout(model: Model, params: Params, state0: State, n_steps: int | None = None,

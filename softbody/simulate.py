@@ -297,7 +297,7 @@ class ImplicitEuler(Integrator):
         start = _step_start(model, prep, state)
         sol, info = model.options.adjoint.solve(model, prep, start, activation, force)
         v = (sol.x - state.x) / prep.dt
-        return State(x=sol.x, v=v, rot=sol.q, t=state.t + prep.dt), memory, info
+        return State(x=sol.x, v=v, rot=sol.q, t=state.t + prep.dt, contact=sol.forces), memory, info
 
     def templates(self, model: Model, call: str) -> tuple[str, ...]:
         return _step_templates(model, call)
@@ -357,9 +357,10 @@ class BDF2(ImplicitEuler):
         x_prev, v_prev = jax.lax.cond(first, lambda: self._past(model, prep, state, activation, force),
                                       lambda: (x_prev, v_prev))
         start = State(x=self._blend(state.x, x_prev), v=self._blend(state.v, v_prev), rot=state.rot,
-                      t=state.t + h / 3.0)
+                      t=state.t + h / 3.0, contact=state.contact)
         new, _, info = super().step(model, prep, start, (), activation, force)
-        return State(x=new.x, v=new.v, rot=new.rot, t=state.t + h), (state.x, state.v, jnp.asarray(False)), info
+        return (State(x=new.x, v=new.v, rot=new.rot, t=state.t + h, contact=new.contact),
+                (state.x, state.v, jnp.asarray(False)), info)
 
     def starts(self, model: Model, prep: Prepared, xs, vs, t0, activation0, force0):
         h = model.options.dt
@@ -510,7 +511,8 @@ def _check_fit(model: Model, **given) -> None:
     n, t, m = model.n_vertices, model.n_tets, len(model.material_names)
     fields = {"params": ({"morph": (n, 3), "E": (m,)}, "the params build returned with this model"),
               "prep": ({"x_rest": (n, 3), "volume": (t,)}, "prepare(model, params) with this model's params")}
-    state = ({"x": (n, 3), "v": (n, 3), "rot": (4, t)}, "initial_state(model, params) with this model's params")
+    state = ({"x": (n, 3), "v": (n, 3), "rot": (4, t), "contact": (model.n_pair_rows, 3)},
+             "initial_state(model, params) with this model's params")
     for owner, value in given.items():
         shapes, fix = fields.get(owner, state)
         for field, shape in shapes.items():
@@ -598,6 +600,8 @@ def integrate(integrator: Integrator, model: Model, params: Params, state0: Stat
     """
     prep, memory0 = integrator.init(model, params, state0)
     inverted0 = inverted_tets(model, prep, state0.x)
+    if model.n_pair_rows and state0.contact is None:  # the steps carry the pair rows' forces
+        state0 = dataclasses.replace(state0, contact=jnp.zeros((model.n_pair_rows, 3), state0.x.dtype))
 
     def body(carry, inputs_k):
         state, memory, bad = carry

@@ -67,6 +67,8 @@ class StepProblem(NamedTuple):
         blocks: ``(n,)`` static ints, each vertex's block of Anderson coefficients in the
             contact iteration (:attr:`softbody._types.Model.contact_blocks`), or ``None``
             for one block.
+        forces0: ``(m, 3)`` forces of the pair rows to start the contact iteration from
+            (:attr:`softbody._types.State.contact`, not differentiated), or ``None`` for zero.
     """
 
     evaluate: Callable
@@ -81,6 +83,7 @@ class StepProblem(NamedTuple):
     rows: tuple = ()
     prepared: object = None
     blocks: object = None
+    forces0: object = None
 
 
 class Solution(NamedTuple):
@@ -94,6 +97,7 @@ class Solution(NamedTuple):
     fallback: Array = False  # bool: a contact step's fast iteration fell short (see StepInfo.fallback)
     overflow: Array = False  # bool: a contact search overflowed its capacity (see StepInfo.overflow)
     tunnelled: Array = 0  # int: surface pairs that passed through each other (see StepInfo.tunnelled)
+    forces: Array | None = None  # (m, 3): the pair rows' forces at the solution (State.contact), or None
 
 
 class NonlinearSolver:
