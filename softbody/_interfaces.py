@@ -447,6 +447,11 @@ class Coordinates:
         ``problem`` (a :class:`softbody.solvers.StepProblem`) without contact."""
         raise NotImplementedError
 
+    def contact_rows(self) -> int:
+        """The number ``e`` of extra rows of :meth:`contact_sweep`'s iterate (static): the
+        contact forces on vertices that the per-vertex step does not move; 0 by default."""
+        return 0
+
     def contact_sweep(self, problem, p, law) -> "ContactSweep":
         """The parts of the contact splitting iteration that depend on the coordinates.
 

@@ -210,11 +210,13 @@ class Params(eqx.Module):
 
 class State(eqx.Module):
     """Simulation state: positions ``x`` and velocities ``v`` ``(n, 3)``, rotations ``rot``
-    ``(4, t)`` (warm start of the local step), the time ``t`` (s) and, in a scene with
-    contact rows between bodies, ``contact``: the ``(m, 3)`` forces (N) of its ``m`` pair
-    rows at the end of the last step, from which the next step's contact iteration starts
-    (its warm start: the step's solution does not depend on it, only the iterations it
-    takes; ``None`` starts from zero forces)."""
+    ``(4, t)`` (warm start of the local step), the time ``t`` (s) and, in a scene whose
+    contact iteration carries forces, ``contact``: its ``(Model.n_contact_rows, 3)`` force
+    rows at the end of the last step (the skin forces of bones and rigid bodies, as the
+    iteration scales them, then the forces of the rows between bodies, N, on each row's
+    touching vertex), from which the next step's contact iteration starts: a warm start,
+    which changes the iterations a step takes, not its solution; ``None`` starts from zero
+    forces."""
 
     x: Array
     v: Array
@@ -306,8 +308,18 @@ class Model:
     @property
     def n_pair_rows(self) -> int:
         """The number of contact rows between bodies (:class:`~softbody._interfaces.PairRows`,
-        over all its generators): the rows of :attr:`State.contact`."""
+        over all its generators): the last rows of :attr:`State.contact`."""
         return sum(generator.size for generator in self.rows if generator.kind == "pair")
+
+    @property
+    def n_contact_rows(self) -> int:
+        """The rows of :attr:`State.contact`: the contact iteration's force rows, the
+        coordinates' own (:meth:`~softbody._interfaces.Coordinates.contact_rows`: forces on
+        the skin of bones and rigid bodies, where they meet obstacles) then
+        :attr:`n_pair_rows`; 0 without contact."""
+        if not self.has_contact:
+            return 0
+        return self.step.coordinates.contact_rows() + self.n_pair_rows
 
     @functools.cached_property
     def contact_blocks(self) -> np.ndarray | None:

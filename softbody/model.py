@@ -356,7 +356,7 @@ def initial_state(model: Model, params: Params | None = None, x=None, v=None) ->
             raise SceneError(f"initial {name} has non-finite values")
     dminv, _ = rest_geometry(model, params.morph if params is not None else jnp.zeros((n, 3)))
     f = deformation_gradient(model, dminv, x)
-    m = model.n_pair_rows
+    m = model.n_contact_rows
     return State(x=x, v=v, rot=rotation.cold_start(f), t=jnp.asarray(0.0), contact=jnp.zeros((m, 3)) if m else None)
 
 

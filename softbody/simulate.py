@@ -511,7 +511,7 @@ def _check_fit(model: Model, **given) -> None:
     n, t, m = model.n_vertices, model.n_tets, len(model.material_names)
     fields = {"params": ({"morph": (n, 3), "E": (m,)}, "the params build returned with this model"),
               "prep": ({"x_rest": (n, 3), "volume": (t,)}, "prepare(model, params) with this model's params")}
-    state = ({"x": (n, 3), "v": (n, 3), "rot": (4, t), "contact": (model.n_pair_rows, 3)},
+    state = ({"x": (n, 3), "v": (n, 3), "rot": (4, t), "contact": (model.n_contact_rows, 3)},
              "initial_state(model, params) with this model's params")
     for owner, value in given.items():
         shapes, fix = fields.get(owner, state)
@@ -600,8 +600,8 @@ def integrate(integrator: Integrator, model: Model, params: Params, state0: Stat
     """
     prep, memory0 = integrator.init(model, params, state0)
     inverted0 = inverted_tets(model, prep, state0.x)
-    if model.n_pair_rows and state0.contact is None:  # the steps carry the pair rows' forces
-        state0 = dataclasses.replace(state0, contact=jnp.zeros((model.n_pair_rows, 3), state0.x.dtype))
+    if model.n_contact_rows and state0.contact is None:  # the steps carry the contact forces
+        state0 = dataclasses.replace(state0, contact=jnp.zeros((model.n_contact_rows, 3), state0.x.dtype))
 
     def body(carry, inputs_k):
         state, memory, bad = carry

@@ -67,7 +67,7 @@ class StepProblem(NamedTuple):
         blocks: ``(n,)`` static ints, each vertex's block of Anderson coefficients in the
             contact iteration (:attr:`softbody._types.Model.contact_blocks`), or ``None``
             for one block.
-        forces0: ``(m, 3)`` forces of the pair rows to start the contact iteration from
+        forces0: ``(e + m, 3)`` force rows to start the contact iteration from
             (:attr:`softbody._types.State.contact`, not differentiated), or ``None`` for zero.
     """
 
@@ -97,7 +97,7 @@ class Solution(NamedTuple):
     fallback: Array = False  # bool: a contact step's fast iteration fell short (see StepInfo.fallback)
     overflow: Array = False  # bool: a contact search overflowed its capacity (see StepInfo.overflow)
     tunnelled: Array = 0  # int: surface pairs that passed through each other (see StepInfo.tunnelled)
-    forces: Array | None = None  # (m, 3): the pair rows' forces at the solution (State.contact), or None
+    forces: Array | None = None  # (e + m, 3): the contact iteration's force rows at the solution (State.contact)
 
 
 class NonlinearSolver:

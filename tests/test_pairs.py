@@ -355,7 +355,10 @@ def test_rigid_box_rests_on_soft_slab():
     """A 2 cm rigid box (4 g) set one contact thickness above the soft slab: the slab's
     vertices under it hold it (pair rows on a rigid body's triangles, its motion in the
     reduced coordinates' sweep). Every step converges; it rests on the rows with the
-    slab carrying its weight, no penetration beyond 1% of its edge, no drift."""
+    slab carrying its weight, no penetration beyond 1% of its edge, no drift. At rest each
+    step starts from the forces the last one left on the rows and on the box's skin
+    (``State.contact``) and converges within a few iterations (measured 1-3 from step 7;
+    134-400 each from zero forces)."""
     rigid = RigidBody(box((0.02, 0.02, 0.02), centre=(0.0, 0.0, 0.02 + THICKNESS)), density=500.0, name="box")
     model, params = build([SoftBody(SLAB, Material(E=1e6, nu=0.3, density=1000.0), fixed="zmin", name="slab"), rigid],
                           rows=[Touch("box", "slab", mu_s=MU, thickness=THICKNESS)],
@@ -369,6 +372,7 @@ def test_rigid_box_rests_on_soft_slab():
     np.testing.assert_allclose(force[-1, N_SLAB:, 2].sum(), mass * G, rtol=1e-6)
     centre = np.asarray(traj.x)[:, N_SLAB:].mean(axis=1)
     assert np.abs(centre[15:] - centre[15]).max() < 1e-4
+    assert np.asarray(traj.info.iterations)[15:].max() <= 10
 
 
 def test_stack_of_three_rigid_boxes_stays_for_two_seconds():

@@ -139,6 +139,10 @@ class Reduced(Coordinates):
 
         return embed, solve, 3 * n + k
 
+    def contact_rows(self) -> int:
+        """One extra row per skin vertex (a bone vertex that may touch an obstacle)."""
+        return len(self.rig.skin)
+
     def contact_sweep(self, problem, p, law):
         """The soft vertices take the per-vertex contact step; the skeleton sweeps its block
         with the contact forces on its skin (see the class docstring). See
