@@ -214,9 +214,9 @@ class State(eqx.Module):
     contact iteration carries forces, ``contact``: its ``(Model.n_contact_rows, 3)`` force
     rows at the end of the last step (the skin forces of bones and rigid bodies, as the
     iteration scales them, then the forces of the rows between bodies, N, on each row's
-    touching vertex), from which the next step's contact iteration starts: a warm start,
-    which changes the iterations a step takes, not its solution; ``None`` starts from zero
-    forces."""
+    touching vertex), from which the next step's contact iteration starts with
+    ``Contact(warm_start=True)``: a warm start, which changes the iterations a step takes,
+    not its solution; ``None`` starts from zero forces."""
 
     x: Array
     v: Array

@@ -252,6 +252,8 @@ def test_contact_rejects_bad_settings_and_mismatched_parameters():
         Contact(splitting="diag")
     with pytest.raises(ValueError, match="history"):
         Contact(history=-1)
+    with pytest.raises(ValueError, match="warm_start must be True or False"):
+        Contact(warm_start=1)
     with pytest.raises(ValueError, match="scale"):
         ScaledDiagonal(0.0)
     for blocks in (((1, 4),), ((0, 2), (3, 4)), ((0, 0),), ((0, 2, 4),)):

@@ -106,14 +106,15 @@ def test_block_rests_on_slab(scene):
     assert x[:, N_SLAB:, 2].min() > 0.01
 
 
-def test_a_step_starts_from_the_forces_the_last_one_left(scene):
-    """The state carries the pair rows' forces (``State.contact``) and the next step's contact
-    iteration starts from them: from the block at rest, a step started from the carried
+def test_a_step_starts_from_the_forces_the_last_one_left():
+    """The state carries the pair rows' forces (``State.contact``) and with
+    ``Contact(warm_start=True)`` the next step's contact iteration starts from them: from the
+    block at rest, a step started from the carried
     forces converges in a few iterations where one started from zero forces needs tens
     (measured: 1 against 90), and both reach the same positions (each to the relative
     tolerance 1e-10; measured 9e-14 m apart, 1e-9 m checked). The carried forces hold the
     block's weight."""
-    model, params = scene
+    model, params = _scene(options=Options(dt=DT, tol=1e-10, max_iter=3000, contact=Contact(warm_start=True)))
     prep = prepare(model, params)
     one = jax.jit(lambda s: step(model, prep, s))
     state = initial_state(model)
@@ -355,14 +356,14 @@ def test_rigid_box_rests_on_soft_slab():
     """A 2 cm rigid box (4 g) set one contact thickness above the soft slab: the slab's
     vertices under it hold it (pair rows on a rigid body's triangles, its motion in the
     reduced coordinates' sweep). Every step converges; it rests on the rows with the
-    slab carrying its weight, no penetration beyond 1% of its edge, no drift. At rest each
-    step starts from the forces the last one left on the rows and on the box's skin
-    (``State.contact``) and converges within a few iterations (measured 1-3 from step 7;
-    134-400 each from zero forces)."""
+    slab carrying its weight, no penetration beyond 1% of its edge, no drift. With
+    ``Contact(warm_start=True)``, at rest each step starts from the forces the last one left
+    on the rows and on the box's skin (``State.contact``) and converges within a few
+    iterations (measured 1-3 from step 7; 134-400 each from zero forces)."""
     rigid = RigidBody(box((0.02, 0.02, 0.02), centre=(0.0, 0.0, 0.02 + THICKNESS)), density=500.0, name="box")
     model, params = build([SoftBody(SLAB, Material(E=1e6, nu=0.3, density=1000.0), fixed="zmin", name="slab"), rigid],
                           rows=[Touch("box", "slab", mu_s=MU, thickness=THICKNESS)],
-                          options=Options(dt=DT, tol=1e-8, max_iter=3000))
+                          options=Options(dt=DT, tol=1e-8, max_iter=3000, contact=Contact(warm_start=True)))
     traj = rollout(model, params, initial_state(model), n_steps=30)  # throws unless every step converged
     gaps = _row_gaps(model, params, traj.x)
     assert gaps.min() > -0.01 * 0.02 and abs(gaps[-1]) < 1e-8

@@ -29,7 +29,8 @@ steps, one core): the upper layer's landing step (step 5) stops at the cap and i
 pass through each other (23 surface pairs, ``RESULTS.tunnelled``; 27 at a35c003, before the
 edge rows followed their closest points), and all 24 steps after it fail
 (cap, overflow or tunnelled), 11.7 s of CPU a step. With the contact forces warm-started
-from step to step (``State.contact``, 3092aad) 15 of the 30 steps succeed: step 5 still
+from step to step (``Contact(warm_start=True)``, measured at 3092aad where it was the
+default) 15 of the 30 steps succeed: step 5 still
 passes surfaces through each other (24 pairs), steps 6-7, 9, 13-16, 18-22, 27 and 29 fail
 (tunnelled, overflow or the cap), 7.5 s of CPU a step. The soft N = 16 pile converges in every
 step at both commits (46-414 iterations, 1377 at a35c003 in its step 3). The contact
