@@ -68,7 +68,8 @@ class StepProblem(NamedTuple):
             contact iteration (:attr:`softbody._types.Model.contact_blocks`), or ``None``
             for one block.
         forces0: ``(e + m, 3)`` force rows to start the contact iteration from
-            (:attr:`softbody._types.State.contact`, not differentiated), or ``None`` for zero.
+            (:attr:`softbody._types.State.contact`; the contact solver never differentiates
+            its solve, so no derivative flows through them), or ``None`` for zero.
     """
 
     evaluate: Callable
