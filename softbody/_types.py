@@ -322,16 +322,24 @@ class Model:
         return self.step.coordinates.contact_rows() + self.n_pair_rows
 
     @functools.cached_property
+    def vertex_bodies(self) -> np.ndarray | None:
+        """``(n,)`` int: each vertex's body, an index into :attr:`bodies`; ``None`` for a
+        scene of one body."""
+        if len(self.bodies) < 2:
+            return None
+        return np.repeat(np.arange(len(self.bodies)), [stop - start for start, stop in
+                                                        (part.vertices for part in self.bodies)])
+
+    @functools.cached_property
     def contact_blocks(self) -> np.ndarray | None:
         """``(n,)`` int: each vertex's block of Anderson coefficients in the contact iteration
         (:func:`softbody.contact.anderson.mix`): one per body, so that bodies that do not touch
         each other converge as each would alone, and one for the bodies that rows between
         bodies (:class:`~softbody._interfaces.PairRows`) couple. ``None`` where that is one
         block for the whole scene."""
-        if len(self.bodies) < 2:
+        body = self.vertex_bodies
+        if body is None:
             return None
-        body = np.repeat(np.arange(len(self.bodies)), [stop - start for start, stop in
-                                                        (part.vertices for part in self.bodies)])
         root = list(range(len(self.bodies)))
 
         def find(i):

@@ -256,7 +256,7 @@ def step_problem(model: Model, prep: Prepared, state: State, activation, force):
         x_n=state.x, v_n=state.v, mass=prep.mass, free=free, dt=prep.dt,
         time=state.t, rows=contact_rows(model, prep), prepared=prep.step,
         blocks=model.contact_blocks,
-        forces0=state.contact)
+        forces0=state.contact, bodies=model.vertex_bodies)
     x0 = prep.inertia.start(state.x, state.v, free)
     if prep.inertia.static:
         # Actuators may load a body with no external force: measure the residual against

@@ -70,6 +70,8 @@ class StepProblem(NamedTuple):
         forces0: ``(e + m, 3)`` force rows to start the contact iteration from
             (:attr:`softbody._types.State.contact`; the contact solver never differentiates
             its solve, so no derivative flows through them), or ``None`` for zero.
+        bodies: ``(n,)`` static ints, each vertex's body
+            (:attr:`softbody._types.Model.vertex_bodies`), or ``None`` for one body.
     """
 
     evaluate: Callable
@@ -85,6 +87,7 @@ class StepProblem(NamedTuple):
     prepared: object = None
     blocks: object = None
     forces0: object = None
+    bodies: object = None
 
 
 class Solution(NamedTuple):

@@ -1,7 +1,7 @@
 """A body thrown at 10 m/s against a 5 mm plate at dt = 1/60 s (softbody.contact.pairs.Touch):
 it moves 16.7 cm a step, 33 plate thicknesses, so the step that meets the plate predicts it
-8 cm beyond. The rows chosen for that step hold it on the plate's near side, and no step
-lets it through unreported."""
+8 cm beyond. The rows chosen for that step hold it on the plate's near side, and a soft cube
+thrown so stops on the plate with every step converged."""
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -90,21 +90,26 @@ def _through(x):
     return np.any(x[..., 2] < -PLATE_H, axis=-1) | np.any(over & (x[..., 2] < 0.0), axis=-1)
 
 
-def test_a_cube_thrown_at_the_plate_never_passes_it_unreported():
-    """The soft cube thrown normally at 10 m/s, its base half a step above the plate: no step
-    leaves a vertex inside or beyond the plate, and none ends with ``RESULTS.success`` unless
-    it converged. (The impact step does not converge at this step size: the pair rows'
-    iteration needs far more than its cap to stop 16.7 cm of motion in one step, and says
-    so, ``max_iterations`` or ``inverted``, as the step after it does.) Thrown without the
-    rows, the body passes the plate in its first step: what the check sees."""
+def test_a_cube_thrown_at_the_plate_stops_on_it_with_every_step_converged():
+    """The soft cube thrown normally at 10 m/s, its base half a step above the plate: every
+    step converges (the impact step's iteration starts where the cube first touches the
+    plate, ``softbody.contact.solver._first_touch``: 1241 iterations, the most of any step
+    2961, against no convergence in 30000 from the predicted end), no step leaves a vertex
+    inside or beyond the plate, and the cube ends at rest on it (restitution 0): its
+    momentum gone, its base at the contact thickness. Thrown without the rows, the body
+    passes the plate in its first step: what the check sees."""
     v = _velocity(0.0)
-    model, params, state = _scene("soft", 0.0, 0.5 * DT * -v[2], max_iter=500)
-    traj = rollout(model, params, state, n_steps=2, throw=False)
+    model, params, state = _scene("soft", 0.0, 0.5 * DT * -v[2], max_iter=6000)
+    traj = rollout(model, params, state, n_steps=8, throw=False)
     x = np.asarray(traj.x)[1:, N_PLATE:]
-    result = np.asarray(traj.info.result)
+    print("iterations", np.asarray(traj.info.iterations), "speed", np.linalg.norm(np.asarray(traj.v)[-1, N_PLATE:].mean(axis=0)),
+          "base", x[-1, :, 2].min())
+    assert np.all(np.asarray(traj.info.converged))
+    assert np.all(np.asarray(traj.info.result) == int(RESULTS.success))
     assert not np.any(_through(x))
-    assert np.all((result == int(RESULTS.success)) == np.asarray(traj.info.converged))
-    assert not np.any(result == int(RESULTS.tunnelled))
+    speed = np.linalg.norm(np.asarray(traj.v)[-1, N_PLATE:].mean(axis=0))
+    assert speed < 1e-3 * SPEED  # 10 m/s stopped: its centre moves by less than 1 cm/s
+    assert abs(x[-1, :, 2].min() - THICKNESS) < 0.05 * THICKNESS
     # without the rows: the straight flight under gravity, through the plate in one step
     t = DT * np.arange(1, 3)[:, None, None]
     free = np.asarray(state.x)[N_PLATE:] + t * v + 0.5 * t**2 * np.array([0.0, 0.0, -9.81])

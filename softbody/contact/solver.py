@@ -20,6 +20,8 @@ P_a`` the row's compliance with each vertex's ``P_a`` shared among its ``c_a`` r
 moves the vertices by the change. At a fixed point the forces balance ``grad Phi`` and every
 row is complementary (a closed gap with a pushing force, or an open one with none) with
 Coulomb's law tangentially, exactly where rows share vertices. See :func:`_pair_update`.
+A step whose predicted end lies deep inside another body starts its iteration where its
+first contact closes along the predicted motion (:func:`_first_touch`), not at that end.
 With ``Contact(warm_start=True)`` the forces start where the last step left them
 (:attr:`softbody._types.State.contact`, a warm start that changes the iterations, not the
 fixed point; so do the coordinates' extra rows, the skin forces of bones and rigid
@@ -514,8 +516,9 @@ class Contact:
         penetrates = (jnp.min(distance(x1, t_end)) < 0) | (reached.gap(x1) < 0)
 
         def redo_pairs():
-            again, selection_used = self._iterate_pairs(problem, coordinates, pairs, selection, lifted, q0,
-                                                        threshold, max_iter)
+            first = _first_touch(pairs.chosen(selection), problem, x0, self.margin)
+            again, selection_used = self._iterate_pairs(problem, coordinates, pairs, selection,
+                                                        lifted.at[:n].set(first), q0, threshold, max_iter)
             return again._replace(evaluations=again.evaluations + sol.evaluations), selection_used
 
         sol, selection = jax.lax.cond(near | penetrates, redo_pairs, lambda: (sol, selection))
@@ -555,6 +558,44 @@ class Contact:
             step, x0, q0, weight=iteration.weight, threshold=threshold, cap=max_iter, history=self.history,
             restart=self.restart, labels=iteration.labels)
         return Solution(best_x, best_q, k, k, best_r)
+
+
+def _first_touch(pairs: _Pairs, problem: StepProblem, x_end, margin: float):
+    """The contact iteration's first positions ``(n, 3)`` in a step with pair rows.
+
+    The rows predicted to end more than ``margin`` inside (their gaps ``a`` at the step's
+    start ``x_n`` and ``b < -margin`` at its predicted end ``x_end``, ``b < a``) close at the
+    fraction ``t = a / (a - b)`` of the step (gaps interpolated linearly; 0 for a row
+    closed at the start). Each body's free vertices start at ``x_n + t (x_end - x_n)`` with
+    the smallest ``t`` of the rows it takes part in (``problem.bodies``; the whole scene's
+    smallest without them): where its first contact of the step closes, not deep inside
+    the other body. A body without such rows (in flight, resting, sliding: their predicted
+    ends lie within ``margin``) starts at ``x_end`` itself, bit for bit as before.
+
+    Why: the pair rows' forces see each vertex through its sweep compliance ``1 / P``,
+    which a stiff body's elasticity dominates. From an end deep inside another body the
+    first updates push with forces that move one vertex against its neighbours (about
+    1000x what stopping the body needs), and the iteration spends its budget bringing them
+    down. From where the body first touches, the forces grow from zero to the impact's, as
+    for a resting contact. A soft 2 cm cube (E = 1e6 Pa) thrown at a held 5 mm plate at
+    ``dt = 1/60`` s, friction 0.5: at 10 m/s (its end predicted 8 cm beyond the plate) the
+    impact step converges in 1241 iterations, against none in 30000 from the predicted end;
+    at 1 m/s in 185 and 155 (the impact and the step after it), against a stall at the
+    3000 cap.
+    """
+    x_n = problem.x_n
+    start, end = pairs.frame(x_n), pairs.frame(x_end)
+    a, b = start.phi, end.phi
+    entering = (b < -margin) & (a > b) & (a < _FAR)
+    t = jnp.where(entering, jnp.clip(a / jnp.where(entering, a - b, 1.0), 0.0, 1.0), 1.0)  # (m,)
+    if problem.bodies is None:
+        t = jnp.min(t)
+    else:  # per body: the smallest t of the rows with a vertex on it
+        bodies = np.asarray(problem.bodies)
+        on = jnp.where(start.weights != 0, t[:, None], 1.0)  # (m, 4)
+        t = jnp.ones(int(bodies.max()) + 1, x_n.dtype).at[jnp.asarray(bodies)[start.vertices]].min(on)
+        t = t[jnp.asarray(bodies)][:, None]
+    return jnp.where((problem.free > 0) & (t < 1.0), x_n + t * (x_end - x_n), x_end)
 
 
 class ContactMap(NamedTuple):
