@@ -168,12 +168,17 @@ def test_silicone_cantilever_within_3_percent_of_the_reference(nu):
     (3614 vertices), its weight and its tip load each, within 3 % of scikit-fem's
     small-deflection P2 (nu = 0.45) or Taylor-Hood (0.49, 0.499) tip deflection (30 cells
     along the beam: within 0.4 % of the 20-cell one). The corotated model's geometric
-    nonlinearity moves the sag by ~0.4 %."""
+    nonlinearity moves the sag by ~0.4 %.
+
+    The static solves stop at a relative residual of 1e-6 (the benchmark's 1e-9 takes ~1.5 x
+    the iterations): measured, every deflection here is then within 6e-8 of its value at
+    1e-9 (relative, the larger of the two loads: nu = 0.45: 4.7e-8, 0.49: 6.0e-8, 0.499:
+    2.3e-8), two millionths of the 3 % the check allows."""
     from softbody.bench import locking
 
     reference = locking.reference_deflections(nu, 30)
     mesh, force, deflection = locking.beam(0.003)
-    for case in locking._solve(mesh, force, deflection, "nodal", (nu,)):
+    for case in locking._solve(mesh, force, deflection, "nodal", (nu,), tol=1e-6):
         error = abs(case["deflection_m"] / reference[case["load"]] - 1)
         print(f"nu = {nu}, {case['load']}: {case['deflection_m'] * 1e3:.4f} mm against "
               f"{reference[case['load']] * 1e3:.4f} mm, error {error:.3f}")
