@@ -22,6 +22,12 @@ row is complementary (a closed gap with a pushing force, or an open one with non
 Coulomb's law tangentially, exactly where rows share vertices. See :func:`_pair_update`.
 A step whose predicted end lies deep inside another body starts its iteration where its
 first contact closes along the predicted motion (:func:`_first_touch`), not at that end.
+Rows on rigid parts take several sweeps an iteration, each moving the part; those sweeps
+keep the rows' frame (normals, weights) of the sweeps' start and move only the gaps with
+the positions. With the frame made again at every sweep a light rigid body's tilt turned
+its rows' forces with its faces, and their torque drove the next sweep's tilt: a 2 cm rigid
+cube landing at 1 m/s on a held plate rocked by +-0.024 rad from sweep to sweep, its impact
+step at the 30000 cap; it now converges in 281 iterations.
 With ``Contact(warm_start=True)`` the forces start where the last step left them
 (:attr:`softbody._types.State.contact`, a warm start that changes the iterations, not the
 fixed point; so do the coordinates' extra rows, the skin forces of bones and rigid
@@ -388,10 +394,15 @@ class Contact:
             if m:  # the pair rows' forces, updated at the new positions, move them
                 respond = None if parts.rigid is None else parts.rigid.respond(aux)
 
-                def update(carry, _):
+                def update(carry, _, start=None):
                     x_new, force = carry
                     z = _positions(x_new, n)
-                    pair = pairs.frame(z)
+                    if start is None:
+                        pair = pairs.frame(z)
+                    else:  # the rows' frame where the sweeps began, their gaps moved with the positions
+                        frame, z0 = start
+                        moved = jnp.sum(frame.normal * jnp.sum(frame.weights[:, :, None] * (z - z0)[frame.vertices], 1), -1)
+                        pair = frame._replace(phi=jnp.where(frame.phi < _FAR, frame.phi + moved, frame.phi))
                     force_new = _pair_update(pair, force, z, problem.x_n, problem.v_n, h, split(pair), sliding)
                     delta = _spread(pair, force_new - force, n)
                     if parts.rigid is None:
@@ -402,7 +413,9 @@ class Contact:
                     (x_new, force_new), _ = update((x_new, force), None)
                 else:  # rows on rigid parts couple through the part's motion: several sweeps
                     before = x_new[n:]  # the extra rows' forces, which the sweeps may relax too
-                    (x_new, force_new), _ = jax.lax.scan(update, (x_new, force), None, length=parts.rigid.sweeps)
+                    z0 = _positions(x_new, n)
+                    (x_new, force_new), _ = jax.lax.scan(functools.partial(update, start=(pairs.frame(z0), z0)),
+                                                         (x_new, force), None, length=parts.rigid.sweeps)
                     rest = jnp.concatenate([rest, (parts.scale * (x_new[n:] - before)).ravel()])
                 rest = jnp.concatenate([rest, (force_new - force).ravel()])
                 x_new = jnp.concatenate([x_new, force_new])
