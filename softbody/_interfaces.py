@@ -406,6 +406,12 @@ class PairRows:
         ``(n, 3)``."""
         raise NotImplementedError
 
+    def contact_distance(self, params):
+        """The distance at which the rows hold the surfaces apart, m (a scalar): a row whose
+        gap is predicted below minus this at a step's end is an impact, and the contact
+        solver starts that step's iteration where the body first touches. The default is 0."""
+        return jnp.asarray(0.0)
+
     def crossed(self, x_start, x_end, params):
         """Whether the surfaces this generator keeps apart passed through each other during
         a step that moved every vertex on a straight line from ``x_start`` to ``x_end``

@@ -31,17 +31,17 @@ AIM = np.array([0.0025, 0.0035])
 CAPACITY = 20000
 
 
-def _velocity(angle):
+def _velocity(angle, speed=SPEED):
     """The throw's velocity, ``angle`` degrees from the plate's normal, towards +x."""
     a = np.radians(angle)
-    return SPEED * np.array([np.sin(a), 0.0, -np.cos(a)])
+    return speed * np.array([np.sin(a), 0.0, -np.cos(a)])
 
 
-def _scene(kind, angle, base, rows=True, max_iter=3000):
+def _scene(kind, angle, base, rows=True, max_iter=3000, speed=SPEED, mu=0.5):
     """The held plate and a 2 cm cube (soft: 27 vertices, E = 1e6 Pa; or rigid), its base
     ``base`` above the plate's top on the line of its throw through ``AIM``; and its start
-    state, thrown."""
-    v = _velocity(angle)
+    state, thrown at ``speed``; friction ``mu``."""
+    v = _velocity(angle, speed)
     centre = np.append(AIM, EDGE / 2) + v * base / v[2]
     if kind == "soft":
         body = SoftBody(grid_box((EDGE,) * 3, (2, 2, 2), origin=centre - EDGE / 2),
@@ -50,8 +50,9 @@ def _scene(kind, angle, base, rows=True, max_iter=3000):
         body = RigidBody(box((EDGE,) * 3, centre=centre), density=1000.0, name="body")
     plate = SoftBody(PLATE, Material(E=1e6, nu=0.3, density=1000.0), fixed=lambda p: np.ones(len(p), bool),
                      name="plate")
-    model, params = build([plate, body], rows=[Touch("body", "plate", thickness=THICKNESS, capacity=CAPACITY)]
-                          if rows else [], options=Options(dt=DT, tol=1e-8, max_iter=max_iter))
+    touch = Touch("body", "plate", mu_s=mu, thickness=THICKNESS, capacity=CAPACITY)
+    model, params = build([plate, body], rows=[touch] if rows else [],
+                          options=Options(dt=DT, tol=1e-8, max_iter=max_iter))
     state = initial_state(model)
     return model, params, eqx.tree_at(lambda s: s.v, state, state.v.at[N_PLATE:].set(jnp.asarray(v)))
 
@@ -102,8 +103,7 @@ def test_a_cube_thrown_at_the_plate_stops_on_it_with_every_step_converged():
     model, params, state = _scene("soft", 0.0, 0.5 * DT * -v[2], max_iter=6000)
     traj = rollout(model, params, state, n_steps=8, throw=False)
     x = np.asarray(traj.x)[1:, N_PLATE:]
-    print("iterations", np.asarray(traj.info.iterations), "speed", np.linalg.norm(np.asarray(traj.v)[-1, N_PLATE:].mean(axis=0)),
-          "base", x[-1, :, 2].min())
+    print("iterations", np.asarray(traj.info.iterations), "base", x[-1, :, 2].min())
     assert np.all(np.asarray(traj.info.converged))
     assert np.all(np.asarray(traj.info.result) == int(RESULTS.success))
     assert not np.any(_through(x))
@@ -114,3 +114,22 @@ def test_a_cube_thrown_at_the_plate_stops_on_it_with_every_step_converged():
     t = DT * np.arange(1, 3)[:, None, None]
     free = np.asarray(state.x)[N_PLATE:] + t * v + 0.5 * t**2 * np.array([0.0, 0.0, -9.81])
     assert np.all(_through(free))
+
+
+def test_a_rigid_cube_landing_at_1_m_s_rests_on_the_plate_with_every_step_converged():
+    """The rigid cube landing normally at 1 m/s without friction, its base half a step above
+    the plate: every step converges (281, 53, 11 iterations) and the cube rests at the contact
+    thickness, stopped. The pair rows on a rigid part take several sweeps an iteration; when
+    each sweep made the rows' frame again, the light cube's tilt turned its rows' forces with
+    its bottom face and their torque drove the next sweep's tilt: it rocked by +-0.024 rad
+    from sweep to sweep and the impact step stopped at the 30000 cap (frictionless, residual
+    7e-5), the cube passing the plate in the next step."""
+    v = _velocity(0.0, 1.0)
+    model, params, state = _scene("rigid", 0.0, 0.5 * DT * -v[2], max_iter=3000, speed=1.0, mu=0.0)
+    traj = rollout(model, params, state, n_steps=3, throw=False)
+    x = np.asarray(traj.x)[1:, N_PLATE:]
+    assert np.all(np.asarray(traj.info.converged))
+    assert np.all(np.asarray(traj.info.result) == int(RESULTS.success))
+    assert not np.any(_through(x))
+    assert abs(x[-1, :, 2].min() - THICKNESS) < 0.05 * THICKNESS
+    assert np.linalg.norm(np.asarray(traj.v)[-1, N_PLATE:].mean(axis=0)) < 1e-2  # 1 m/s stopped

@@ -359,6 +359,10 @@ class Touch(PairRows):
         return {"mu_s": jnp.asarray(float(self.mu_s)), "mu_k": jnp.asarray(float(self.mu_k)),
                 "restitution": jnp.asarray(float(self.restitution)), "thickness": jnp.asarray(float(self.thickness))}
 
+    def contact_distance(self, params):
+        """The contact thickness (see :meth:`~softbody._interfaces.PairRows.contact_distance`)."""
+        return params["thickness"]
+
     def check(self, params) -> None:
         try:
             values = {k: params[k] for k in ("mu_s", "mu_k", "restitution", "thickness")}

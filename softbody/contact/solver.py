@@ -401,7 +401,8 @@ class Contact:
                         pair = pairs.frame(z)
                     else:  # the rows' frame where the sweeps began, their gaps moved with the positions
                         frame, z0 = start
-                        moved = jnp.sum(frame.normal * jnp.sum(frame.weights[:, :, None] * (z - z0)[frame.vertices], 1), -1)
+                        shift = jnp.sum(frame.weights[:, :, None] * (z - z0)[frame.vertices], axis=1)
+                        moved = jnp.sum(frame.normal * shift, axis=-1)
                         pair = frame._replace(phi=jnp.where(frame.phi < _FAR, frame.phi + moved, frame.phi))
                     force_new = _pair_update(pair, force, z, problem.x_n, problem.v_n, h, split(pair), sliding)
                     delta = _spread(pair, force_new - force, n)
@@ -576,14 +577,15 @@ class Contact:
 def _first_touch(pairs: _Pairs, problem: StepProblem, x_end, margin: float):
     """The contact iteration's first positions ``(n, 3)`` in a step with pair rows.
 
-    The rows predicted to end more than ``margin`` inside (their gaps ``a`` at the step's
-    start ``x_n`` and ``b < -margin`` at its predicted end ``x_end``, ``b < a``) close at the
-    fraction ``t = a / (a - b)`` of the step (gaps interpolated linearly; 0 for a row
-    closed at the start). Each body's free vertices start at ``x_n + t (x_end - x_n)`` with
+    The rows predicted to pass the other surface (their gaps ``a`` at the step's start
+    ``x_n`` and ``b`` at its predicted end ``x_end``, ``b < a`` and ``b`` below minus the rows'
+    thickness, :meth:`~softbody._interfaces.PairRows.contact_distance`, or ``margin`` if larger)
+    close at the fraction ``t = a / (a - b)`` of the step (gaps interpolated linearly; 0 for
+    a row closed at the start). Each body's free vertices start at ``x_n + t (x_end - x_n)`` with
     the smallest ``t`` of the rows it takes part in (``problem.bodies``; the whole scene's
     smallest without them): where its first contact of the step closes, not deep inside
-    the other body. A body without such rows (in flight, resting, sliding: their predicted
-    ends lie within ``margin``) starts at ``x_end`` itself, bit for bit as before.
+    the other body. A body without such rows (in flight, resting, sliding, settling onto
+    another) starts at ``x_end`` itself, bit for bit as before.
 
     Why: the pair rows' forces see each vertex through its sweep compliance ``1 / P``,
     which a stiff body's elasticity dominates. From an end deep inside another body the
@@ -599,7 +601,9 @@ def _first_touch(pairs: _Pairs, problem: StepProblem, x_end, margin: float):
     x_n = problem.x_n
     start, end = pairs.frame(x_n), pairs.frame(x_end)
     a, b = start.phi, end.phi
-    entering = (b < -margin) & (a > b) & (a < _FAR)
+    depth = jnp.concatenate([jnp.full(generator.size, jnp.maximum(generator.contact_distance(params), margin))
+                             for generator, params, _ in pairs.rows])
+    entering = (b < -depth) & (a > b) & (a < _FAR)
     t = jnp.where(entering, jnp.clip(a / jnp.where(entering, a - b, 1.0), 0.0, 1.0), 1.0)  # (m,)
     if problem.bodies is None:
         t = jnp.min(t)
