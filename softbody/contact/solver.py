@@ -609,9 +609,9 @@ def _first_touch(pairs: _Pairs, problem: StepProblem, x_end, margin: float):
         t = jnp.min(t)
     else:  # per body: the smallest t of the rows with a vertex on it
         bodies = np.asarray(problem.bodies)
+        label = jnp.asarray(bodies)
         on = jnp.where(start.weights != 0, t[:, None], 1.0)  # (m, 4)
-        t = jnp.ones(int(bodies.max()) + 1, x_n.dtype).at[jnp.asarray(bodies)[start.vertices]].min(on)
-        t = t[jnp.asarray(bodies)][:, None]
+        t = jnp.ones(int(bodies.max()) + 1, x_n.dtype).at[label[start.vertices]].min(on)[label][:, None]
     return jnp.where((problem.free > 0) & (t < 1.0), x_n + t * (x_end - x_n), x_end)
 
 
