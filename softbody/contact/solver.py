@@ -394,29 +394,29 @@ class Contact:
             if m:  # the pair rows' forces, updated at the new positions, move them
                 respond = None if parts.rigid is None else parts.rigid.respond(aux)
 
-                def update(carry, _, start=None):
+                def update(carry, _, start):
+                    """One update of the rows' forces and the positions' response to it, in the
+                    rows' frame ``start`` ``(frame, z0)`` where the sweeps began, each gap moved
+                    with the positions since (the first update's move is zero)."""
                     x_new, force = carry
                     z = _positions(x_new, n)
-                    if start is None:
-                        pair = pairs.frame(z)
-                    else:  # the rows' frame where the sweeps began, their gaps moved with the positions
-                        frame, z0 = start
-                        shift = jnp.sum(frame.weights[:, :, None] * (z - z0)[frame.vertices], axis=1)
-                        moved = jnp.sum(frame.normal * shift, axis=-1)
-                        pair = frame._replace(phi=jnp.where(frame.phi < _FAR, frame.phi + moved, frame.phi))
+                    frame, z0 = start
+                    shift = jnp.sum(frame.weights[:, :, None] * (z - z0)[frame.vertices], axis=1)
+                    moved = jnp.sum(frame.normal * shift, axis=-1)
+                    pair = frame._replace(phi=jnp.where(frame.phi < _FAR, frame.phi + moved, frame.phi))
                     force_new = _pair_update(pair, force, z, problem.x_n, problem.v_n, h, split(pair), sliding)
                     delta = _spread(pair, force_new - force, n)
                     if parts.rigid is None:
                         return (x_new.at[:n].add(touching * delta / p), force_new), None
                     return (respond(x_new, delta), force_new), None
 
+                z0 = _positions(x_new, n)
+                update = functools.partial(update, start=(pairs.frame(z0), z0))
                 if parts.rigid is None:
                     (x_new, force_new), _ = update((x_new, force), None)
                 else:  # rows on rigid parts couple through the part's motion: several sweeps
                     before = x_new[n:]  # the extra rows' forces, which the sweeps may relax too
-                    z0 = _positions(x_new, n)
-                    (x_new, force_new), _ = jax.lax.scan(functools.partial(update, start=(pairs.frame(z0), z0)),
-                                                         (x_new, force), None, length=parts.rigid.sweeps)
+                    (x_new, force_new), _ = jax.lax.scan(update, (x_new, force), None, length=parts.rigid.sweeps)
                     rest = jnp.concatenate([rest, (parts.scale * (x_new[n:] - before)).ravel()])
                 rest = jnp.concatenate([rest, (force_new - force).ravel()])
                 x_new = jnp.concatenate([x_new, force_new])
