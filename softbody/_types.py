@@ -336,7 +336,9 @@ class Model:
         (:func:`softbody.contact.anderson.mix`): one per body, so that bodies that do not touch
         each other converge as each would alone, and one for the bodies that rows between
         bodies (:class:`~softbody._interfaces.PairRows`) couple. ``None`` where that is one
-        block for the whole scene."""
+        block for the whole scene. In a step with pair rows the forward iteration joins only
+        the bodies that the step's rows join (``softbody.contact.solver._touching_groups``);
+        these static blocks serve the implicit derivative's linear solve."""
         body = self.vertex_bodies
         if body is None:
             return None

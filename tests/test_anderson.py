@@ -1,7 +1,9 @@
 """Anderson mixing (softbody.contact.anderson): separate blocks mix as each would alone."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from softbody.contact import anderson
 
@@ -14,9 +16,9 @@ def _problem(seed, size, rho):
     return jnp.asarray(j), jnp.asarray(rng.standard_normal(size))
 
 
-def _iterates(maps, x0, labels, m=5, steps=12):
+def _iterates(maps, x0, labels, m=5, steps=12, blocks=None):
     """The Anderson iterates of ``x -> maps(x)`` from ``x0``, entries in the blocks ``labels``."""
-    hist = anderson.init(m, x0.size, x0.dtype, labels)
+    hist = anderson.init(m, x0.size, x0.dtype, labels, blocks)
     x, out = x0, []
     for _ in range(steps):
         x, hist = anderson.mix(x, maps(x), jnp.ones(x.size), hist, jnp.asarray(False), m, labels)
@@ -40,6 +42,23 @@ def test_blocks_mix_as_each_alone():
     np.testing.assert_allclose(together[:, 7:], alone2, rtol=0, atol=1e-12)
     mixed = _iterates(both, x0, None)
     assert np.abs(np.asarray(mixed[:, :7] - alone1)).max() > 1e-6
+
+
+def test_blocks_found_under_jit_mix_as_static_ones():
+    """Labels computed inside a compiled function (the contact iteration finds its blocks
+    from the step's rows), with a label that no entry carries, give the iterates of the same
+    blocks given as static labels; without their number they are refused."""
+    (j1, b1), (j2, b2) = _problem(0, 7, 0.99), _problem(1, 5, 0.5)
+
+    def both(x):
+        return jnp.concatenate([j1 @ x[:7] + b1, j2 @ x[7:] + b2])
+
+    x0 = jnp.zeros(12)
+    static = _iterates(both, x0, np.repeat([0, 1], [7, 5]))
+    traced = jax.jit(lambda shift: _iterates(both, x0, jnp.where(jnp.arange(12) < 7, 0, 2) + shift, blocks=4))(0)
+    np.testing.assert_allclose(traced, static, rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="number of blocks"):
+        jax.jit(lambda labels: anderson.init(5, 12, x0.dtype, labels))(jnp.zeros(12, int))
 
 
 def test_iterate_keeps_the_best_and_stops_where_it_is_told():

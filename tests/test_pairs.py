@@ -76,6 +76,27 @@ def test_bodies_that_touch_share_anderson_coefficients_and_others_keep_their_own
     assert _scene()[0].contact_blocks is None
 
 
+def test_a_step_mixes_the_bodies_its_rows_join_and_no_others():
+    """The forward iteration's Anderson blocks in a step with pair rows: the groups of bodies
+    that the step's rows join, through chains of rows (bodies 3-2-1 by two rows), and not
+    not through rows that are not there (an infinite gap: a padding slot between 4, 5 and 0)
+    or through a vertex of zero weight (body 4's in a row on body 0). Six bodies of two vertices, one extra row on vertex 9
+    and the rows' own entries, three per row."""
+    from softbody._interfaces import PairFrame
+    from softbody.contact.solver import _touching_groups
+
+    bodies = np.repeat(np.arange(6), 2)
+    rows = np.array([[6, 4, 5, 5], [4, 2, 3, 3], [8, 10, 11, 0], [0, 1, 1, 8]])  # vertex 8 is body 4's
+    weights = np.array([[1.0, -0.5, -0.5, 0.0], [1.0, -0.2, -0.8, 0.0], [1.0, -0.5, -0.5, 0.0], [1.0, -1.0, 0.0, 0.0]])
+    frame = PairFrame(vertices=jnp.asarray(rows), weights=jnp.asarray(weights),
+                      phi=jnp.array([1e-4, -1e-4, jnp.inf, 0.0]), normal=jnp.zeros((4, 3)), mu_s=None, mu_k=None,
+                      restitution=None)
+    labels, count = jax.jit(lambda f: _touching_groups(f, bodies, np.array([9])))(frame)
+    assert count == 6
+    vertex = np.repeat([0, 1, 1, 1, 4, 5], 2)
+    np.testing.assert_array_equal(labels, np.repeat(np.concatenate([vertex, vertex[[9]], vertex[rows[:, 0]]]), 3))
+
+
 def test_block_rests_on_slab(scene):
     model, params = scene
     traj = rollout(model, params, initial_state(model), n_steps=30)  # throws unless every step converged

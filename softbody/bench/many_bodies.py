@@ -22,20 +22,17 @@ iteration's 30 sweeps of the pair rows go body by body (one 6 x 6 block each,
 their number: 0.61 and 2.66 ms of CPU an iteration at N = 4 and 16 (first 5 steps; with
 one dense matrix over all their degrees of freedom, before: 0.56 and 4.54 ms, and 1.27 at
 N = 8). A step costs about 30 times a soft one's, mostly in iterations: at N = 4, 364 ms
-of CPU against 12 ms (440 iterations a step, median, against 70). At N = 16 the steps
-after the landings stop at the 3000-iteration cap, unconverged (median 3000 iterations,
-9.4 s of CPU a step; 0.37 mm deepest row penetration). Measured again on 2026-12-07 (30
-steps, one core): the upper layer's landing step (step 5) stops at the cap and its surfaces
-pass through each other (23 surface pairs, ``RESULTS.tunnelled``; 27 at a35c003, before the
-edge rows followed their closest points), and all 24 steps after it fail
-(cap, overflow or tunnelled), 11.7 s of CPU a step. With the contact forces warm-started
-from step to step (``Contact(warm_start=True)``, measured at 3092aad where it was the
-default) 15 of the 30 steps succeed: step 5 still
-passes surfaces through each other (24 pairs), steps 6-7, 9, 13-16, 18-22, 27 and 29 fail
-(tunnelled, overflow or the cap), 7.5 s of CPU a step. The soft N = 16 pile converges in every
-step at both commits (46-414 iterations, 1377 at a35c003 in its step 3). The contact
-iteration of rigid and soft bodies resting on each other, not the cost of its sweeps, is
-what stops this scene from growing, so it is not run past 16.
+of CPU against 12 ms (440 iterations a step, median, against 70). At N = 16 (eight separate
+stacks of two under one Touch) the contact iteration mixed every stack with one set of
+Anderson coefficients until 2026-12-07, and every step from the upper layer's landing
+(step 5) on stopped at the cap: 5 of 30 steps succeeded (299 s of CPU for the 30 steps).
+Each step now mixes only the bodies its rows join
+(:func:`softbody.contact.solver._touching_groups`): 28 of 30 succeed (steps 5 and 15 stop
+at the cap), median 578 iterations a step, 145 s of CPU (30 steps, one core). The soft
+N = 16 pile converges in every step (46-414 iterations). A soft cube resting on a rigid one
+is the slow pair: 223-1061 iterations a step once it has landed (steps 4-11), against 49-186
+for a rigid cube on a soft one, 68-188 for two soft ones and 12-133 for two rigid ones (two
+cubes alone, the same settings); mixed piles are not run past 16.
 
 Reported per ``N`` (``cases``): time per step (median of the steps' mean over 3 timed
 rollouts after a compiling one; compile time apart), as wall time (``step_s``) and as the

@@ -24,7 +24,16 @@ import jax.numpy as jnp
 import numpy as np
 
 
-def init(m: int, size: int, dtype, labels: np.ndarray | None = None):
+def _count(labels, blocks: int | None) -> int:
+    """The number of blocks: ``blocks`` if given, else one more than the largest static label."""
+    if blocks is not None:
+        return int(blocks)
+    if isinstance(labels, jax.Array):
+        raise ValueError("labels computed under jit need their number of blocks (blocks=...)")
+    return int(np.max(labels)) + 1
+
+
+def init(m: int, size: int, dtype, labels=None, blocks: int | None = None):
     """An empty Anderson history.
 
     Arguments:
@@ -32,6 +41,8 @@ def init(m: int, size: int, dtype, labels: np.ndarray | None = None):
         size: ``N``, the number of unknowns (the iterate's size).
         dtype: the iterate's floating-point type.
         labels: the block of each entry, as :func:`mix` takes them (``None``: one block).
+        blocks: the number of blocks ``B`` (static), needed where ``labels`` is a traced
+            array (blocks found during the step); default one more than the largest label.
 
     Returns:
         ``(dR (m, N), dG (m, N), Gram, r (N,), g (N,), count ())``: residual and output
@@ -42,7 +53,7 @@ def init(m: int, size: int, dtype, labels: np.ndarray | None = None):
     return (
         jnp.zeros((m, size), dtype),
         jnp.zeros((m, size), dtype),
-        jnp.zeros((m, m) if labels is None else (int(np.max(labels)) + 1, m, m), dtype),
+        jnp.zeros((m, m) if labels is None else (_count(labels, blocks), m, m), dtype),
         jnp.zeros(size, dtype),
         jnp.zeros(size, dtype),
         jnp.asarray(0),
@@ -69,8 +80,9 @@ def mix(x, gx, weight, hist, restart, m: int, labels: np.ndarray | None = None):
             previous output).
         restart: a boolean scalar: clear the history before this pair.
         m: the history length (static), as given to :func:`init`.
-        labels: ``(N,)`` static ints ``0 .. B - 1``, the block of each flattened entry;
-            ``None``: one block.
+        labels: ``(N,)`` ints ``0 .. B - 1`` (static, or traced with ``B`` given to
+            :func:`init`), the block of each flattened entry; ``None``: one block. A label
+            that no entry carries is an empty block (its coefficients are zero).
 
     Returns:
         ``(x_next, hist)``: the next iterate (the shape of ``x``) and the updated history.
@@ -108,7 +120,7 @@ def mix(x, gx, weight, hist, restart, m: int, labels: np.ndarray | None = None):
 
 
 def iterate(step, x0, q0, cache=(), *, weight, threshold, cap, history: int, restart: float,
-            labels: np.ndarray | None = None, patience: int | None = None):
+            labels=None, blocks: int | None = None, patience: int | None = None):
     """Anderson-accelerated fixed-point iteration that keeps its best iterate.
 
     Each iteration maps the iterate by ``step``, keeps the output with the smallest
@@ -123,7 +135,8 @@ def iterate(step, x0, q0, cache=(), *, weight, threshold, cap, history: int, res
             boolean that restarts the history (or ``None``: never).
         x0, q0: the start iterate (any shape) and its companion (rotations); cache: the
             first ``cache`` (a pytree; ``()``: none).
-        weight: ``(x0.size,)`` Anderson weights; labels: Anderson blocks (see :func:`mix`).
+        weight: ``(x0.size,)`` Anderson weights; labels, blocks: Anderson blocks and their
+            number (see :func:`init` and :func:`mix`).
         threshold: stop when the residual of the last iterate is at most this; cap: the
             iteration cap (may be traced).
         history: Anderson history length; restart: the residual growth (> 1) that
@@ -159,7 +172,8 @@ def iterate(step, x0, q0, cache=(), *, weight, threshold, cap, history: int, res
         return more if patience is None else more & (c[9] < 4 * patience)
 
     stall = None if patience is None else jnp.asarray(0)
-    init_ = (x0, q0, jnp.asarray(0), x0, q0, inf, inf, init(history, x0.size, x0.dtype, labels), cache, stall)
+    init_ = (x0, q0, jnp.asarray(0), x0, q0, inf, inf, init(history, x0.size, x0.dtype, labels, blocks), cache,
+             stall)
     _, _, k, best_x, best_q, best_r, _, _, cache, _ = jax.lax.while_loop(going, body, init_)
     return best_x, best_q, k, best_r, cache
 
