@@ -57,7 +57,7 @@ def test_blocks_found_under_jit_mix_as_static_ones():
     static = _iterates(both, x0, np.repeat([0, 1], [7, 5]))
     traced = jax.jit(lambda shift: _iterates(both, x0, jnp.where(jnp.arange(12) < 7, 0, 2) + shift, blocks=4))(0)
     np.testing.assert_allclose(traced, static, rtol=0, atol=1e-12)
-    with pytest.raises(ValueError, match="number of blocks"):
+    with pytest.raises(TypeError, match="number of blocks"):
         jax.jit(lambda labels: anderson.init(5, 12, x0.dtype, labels))(jnp.zeros(12, int))
 
 

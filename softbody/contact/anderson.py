@@ -29,7 +29,7 @@ def _count(labels, blocks: int | None) -> int:
     if blocks is not None:
         return int(blocks)
     if isinstance(labels, jax.Array):
-        raise ValueError("labels computed under jit need their number of blocks (blocks=...)")
+        raise TypeError("labels computed under jit need their number of blocks (blocks=...)")
     return int(np.max(labels)) + 1
 
 
@@ -49,6 +49,9 @@ def init(m: int, size: int, dtype, labels=None, blocks: int | None = None):
         differences, the Gram matrix of the residual differences (``(m, m)``; with ``labels``
         ``(B, m, m)``, one per block), the last weighted residual and output,
         and the number of pairs seen since the last restart.
+
+    Raises:
+        TypeError: ``labels`` traced (computed under ``jit``) without ``blocks``.
     """
     return (
         jnp.zeros((m, size), dtype),
