@@ -59,6 +59,7 @@ def test_blocks_found_under_jit_mix_as_static_ones():
     np.testing.assert_allclose(traced, static, rtol=0, atol=1e-12)
     with pytest.raises(TypeError, match="number of blocks"):
         jax.jit(lambda labels: anderson.init(5, 12, x0.dtype, labels))(jnp.zeros(12, int))
+    assert anderson.init(5, 12, x0.dtype, jnp.asarray([0, 2] * 6))[2].shape == (3, 5, 5)  # concrete: counted
 
 
 def test_iterate_keeps_the_best_and_stops_where_it_is_told():

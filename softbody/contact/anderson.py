@@ -28,7 +28,7 @@ def _count(labels, blocks: int | None) -> int:
     """The number of blocks: ``blocks`` if given, else one more than the largest static label."""
     if blocks is not None:
         return int(blocks)
-    if isinstance(labels, jax.Array):
+    if isinstance(labels, jax.core.Tracer):
         raise TypeError("labels computed under jit need their number of blocks (blocks=...)")
     return int(np.max(labels)) + 1
 
