@@ -25,10 +25,12 @@ N = 8). A step costs about 30 times a soft one's, mostly in iterations: at N = 4
 of CPU against 12 ms (440 iterations a step, median, against 70). At N = 16 (eight separate
 stacks of two under one Touch) the contact iteration mixed every stack with one set of
 Anderson coefficients until 2026-12-07, and every step from the upper layer's landing
-(step 5) on stopped at the cap: 5 of 30 steps succeeded (299 s of CPU for the 30 steps).
+(step 5) on stopped at the cap: 5 of 30 steps succeeded (359 s of CPU for the 30 steps).
 Each step now mixes only the bodies its rows join
 (:func:`softbody.contact.solver._touching_groups`): 28 of 30 succeed (steps 5 and 15 stop
-at the cap), median 578 iterations a step, 145 s of CPU (30 steps, one core). The soft
+at the cap), median 578 iterations a step, 145 s of CPU (30 steps, one core); at N = 64,
+21 of 30 (step 4 overflows the Touch's default capacity, 7 steps stop at the cap; before,
+4 of 30: the same overflow, then every step at the cap), 702 s of CPU (1268 s before). The soft
 N = 16 pile converges in every step (46-414 iterations). A soft cube resting on a rigid one
 is the slow pair: 223-1061 iterations a step once it has landed (steps 4-11), against 49-186
 for a rigid cube on a soft one, 68-188 for two soft ones and 12-133 for two rigid ones (two

@@ -635,7 +635,7 @@ def _touching_groups(start: PairFrame, bodies, owners: np.ndarray):
     of ``softbody bench many-bodies``' soft-and-rigid scene (eight separate stacks of two
     under one :class:`~softbody.contact.pairs.Touch`, 30 steps): with one block, every step
     from the upper layer's landing (step 5) on stopped at the iteration cap (5 of 30 steps
-    succeeded, 299 s of CPU); with these groups 28 of 30 succeed (steps 5 and 15 at the cap;
+    succeeded, 359 s of CPU); with these groups 28 of 30 succeed (steps 5 and 15 at the cap;
     median 578 iterations; 145 s). The implicit derivative's linear solve keeps the static
     blocks (:attr:`ContactMap.labels`).
     """
