@@ -373,7 +373,7 @@ class Contact:
         def split(pair):
             """``(n, 1)``: each vertex's compliance times the number of live rows on its part
             (mass splitting; a row counts once per part, however many of its vertices lie on it)."""
-            live = (pair.phi < _FAR)[:, None] & (pair.weights != 0)  # (m, 4)
+            live = _acting(pair)
             label = jnp.asarray(body)[pair.vertices]
             repeat = jnp.any((label[:, :, None] == label[:, None, :]) & live[:, None, :] & earlier, axis=2)
             once = (live & ~repeat).ravel().astype(pair.phi.dtype)
@@ -619,6 +619,12 @@ def _first_touch(pairs: _Pairs, problem: StepProblem, x_end, margin: float):
     return jnp.where((problem.free > 0) & (t < 1.0), x_n + t * (x_end - x_n), x_end)
 
 
+def _acting(frame: PairFrame):
+    """``(m, 4)`` bool: the slots of rows that are there (a finite gap) on which the row acts
+    (a nonzero weight)."""
+    return (frame.phi < _FAR)[:, None] & (frame.weights != 0)
+
+
 def _touching_groups(start: PairFrame, bodies, owners: np.ndarray):
     """The Anderson blocks of the forward iteration in a step with pair rows: the bodies
     that the step's rows join (``start``, the rows' frame at the step's start: a row joins
@@ -641,7 +647,7 @@ def _touching_groups(start: PairFrame, bodies, owners: np.ndarray):
     """
     body = np.asarray(bodies)
     count = int(body.max()) + 1
-    live = (start.phi < _FAR)[:, None] & (start.weights != 0)  # (m, 4)
+    live = _acting(start)
     row_bodies = jnp.asarray(body)[start.vertices]  # (m, 4)
 
     def join(carry):
