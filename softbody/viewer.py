@@ -158,8 +158,18 @@ class Coloring:
         return cls(levels[None], np.array(colors), _swatches_html(names + ["other"], colors))
 
 
+def _is_open(faces: np.ndarray) -> bool:
+    """Whether a triangle surface ``(f, 3)`` has boundary edges (edges of one triangle only),
+    as a sheet has and a closed body surface has not."""
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    return bool(np.any(np.unique(edges, axis=0, return_counts=True)[1] == 1))
+
+
 class Body:
     """The deformable surface in a viser scene, one mesh per colour level.
+
+    A closed surface is drawn from its front (outer) faces; a surface with boundary edges
+    (a sheet: cloth, a shell) from both sides, so that either face of it shows.
 
     Arguments:
         server: the viser server.
@@ -169,6 +179,7 @@ class Body:
 
     def __init__(self, server: viser.ViserServer, faces: np.ndarray, name: str = "/body"):
         self.server, self.faces, self.name = server, np.asarray(faces), name
+        self.side = "double" if len(self.faces) and _is_open(self.faces) else "front"
         self.handles: dict[int, Any] = {}
         self.colors: dict[int, tuple[int, int, int]] = {}
         self.opacity: float | None = None
@@ -182,7 +193,7 @@ class Body:
         bounds = np.searchsorted(levels[order], np.arange(len(colors) + 1))
         self.active = {k for k in range(len(colors)) if bounds[k + 1] > bounds[k]}
         with self.server.atomic():
-            for k in range(max(len(colors), len(self.handles))):
+            for k in sorted(set(range(len(colors))) | set(self.handles)):  # levels drawn before included
                 handle = self.handles.get(k)
                 tris = self.faces[order[bounds[k]:bounds[k + 1]]] if k < len(colors) else self.faces[:0]
                 if len(tris) == 0:
@@ -195,7 +206,7 @@ class Body:
                 if handle is None:
                     self.handles[k] = self.server.scene.add_mesh_simple(
                         f"{self.name}/level{k:02d}", verts, local, color=color, flat_shading=True,
-                        opacity=self.opacity, visible=self.visible)
+                        side=self.side, opacity=self.opacity, visible=self.visible)
                     self.colors[k] = color
                     continue
                 handle.vertices = verts

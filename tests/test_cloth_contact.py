@@ -63,7 +63,7 @@ def test_a_cloth_dropped_on_a_sphere_drapes_it_without_penetration_and_comes_to_
     within 1 %: what is left of the swinging, an rms speed ``v`` at pendulum frequencies
     ``sqrt(g / l) ~ 10 /s`` for ``l ~ R``, accelerates the centre of mass by ``~10 v``,
     0.3 % of ``g`` at ``v`` = 3 mm/s."""
-    mesh, model, params, sphere, traj = drape
+    _, model, params, sphere, traj = drape
     x, v = np.asarray(traj.x), np.asarray(traj.v)
     phi = np.stack([np.asarray(sphere.distance(jnp.asarray(xs), params.obstacles[0], 0.0)[0]) for xs in x])
     assert phi.min() > -1e-12, phi.min()

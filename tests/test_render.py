@@ -1,4 +1,5 @@
-"""Offscreen renders: PNG, GIF and MP4 of a two-frame trajectory are drawn and move.
+"""Offscreen renders: PNG, GIF and MP4 of a two-frame trajectory are drawn and move; a
+sheet (a body without tets) is drawn lit from either side, in renders and in the viewer.
 
 Rendering runs in a subprocess through the real command line (``softbody render``), so a
 crash of the GL stack fails the test with its output instead of killing pytest.
@@ -13,7 +14,10 @@ import numpy as np
 import pytest
 from test_io import box_result
 
+from softbody.io import Result
+from softbody.meshing import sheet
 from softbody.render import plot_loss, render
+from softbody.viewer import view
 
 SIZE = (320, 240)
 
@@ -107,3 +111,61 @@ def test_plot_loss(tmp_path):
         plot_loss([1.0, 0.5], path)
     with pytest.raises(ValueError, match="non-empty"):
         plot_loss([], tmp_path / "empty.png")
+
+
+def sheet_result(flip=False):
+    """A 0.4 m square of cloth (gmsh triangles, no tets) over two frames: flat 11 cm up,
+    then dropped 5 cm and draped, its rim 8 cm below its centre. ``flip`` reverses the
+    triangles' winding, so that the camera, above, sees their back faces."""
+    mesh = sheet.rectangle(0.4, 0.4, 0.04, x0=-0.2)
+    flat = mesh.points + [0.0, -0.2, 0.11]
+    draped = flat - [0.0, 0.0, 0.05]
+    draped[:, 2] -= 2.0 * (flat[:, 0] ** 2 + flat[:, 1] ** 2)
+    surface = mesh.surface[:, ::-1] if flip else mesh.surface
+    return Result(flat, mesh.tets, surface, np.stack([flat, draped]), 0.01, regions=dict(mesh.regions))
+
+
+def test_a_sheet_renders_lit_from_either_side(tmp_path):
+    """A result without tets renders (its default colouring included) and the sheet fills
+    a good part of the frame; seen from the back of its triangles it is as bright as from
+    their front (both faces lit: within 10 %, measured equal to 1 %)."""
+    size = f"{SIZE[0]}x{SIZE[1]}"
+    shown = {}
+    for flip in (False, True):
+        path = sheet_result(flip).save(tmp_path / f"sheet{int(flip)}.npz")
+        cli_render(path, "-o", tmp_path / f"strain{int(flip)}.png", "--size", size)
+        assert_drawn(iio.imread(tmp_path / f"strain{int(flip)}.png"), f"sheet, flip={flip}")
+        render(path, tmp_path / f"plain{int(flip)}.png", color_by=None, ground=False, window_size=SIZE)
+        shown[flip] = iio.imread(tmp_path / f"plain{int(flip)}.png")[..., :3].astype(float)
+    mask = foreground(shown[False])
+    assert 0.1 < mask.mean() < 0.9, f"the sheet covers {mask.mean():.1%} of the frame"
+    assert np.array_equal(mask, foreground(shown[True])), "the sheet's outline changed with its triangles' winding"
+    front, back = shown[False][mask].mean(), shown[True][mask].mean()
+    assert abs(back - front) < 0.1 * front, (front, back)
+
+
+def test_the_viewer_draws_a_sheet_from_both_sides():
+    """The viewer draws a sheet's triangles double-sided (a closed body's from the front),
+    and after a colouring with many levels one with a single level shows each triangle
+    once (the levels drawn before are hidden)."""
+    result = sheet_result()
+    viewer = view(result, port=0, block=False)
+    try:
+        viewer.playing = False
+        viewer.frame = 1
+        assert viewer.body.side == "double"
+        viewer.color_by = "displacement"
+        levels = set(viewer.body.active)
+        assert len(levels) > 3 and max(levels) >= len(viewer.body.handles), "the levels in use are not sparse"
+        for mode in ("displacement", "none", "regions"):
+            viewer.color_by = mode
+            visible = [h for h in viewer.body.handles.values() if h.visible]
+            assert sum(len(h.faces) for h in visible) == len(result.surface), mode
+            assert all(h.side == "double" for h in visible)
+    finally:
+        viewer.stop()
+    closed = view(box_result(frames=2), port=0, block=False)
+    try:
+        assert closed.body.side == "front"
+    finally:
+        closed.stop()
