@@ -12,7 +12,7 @@ Scenes: :func:`build`, :class:`SoftBody`, :class:`RigidBody`, :func:`prepare`, :
 :class:`Material`, :class:`Skeleton`, :class:`Fix` (vertices held in chosen components),
 :class:`Membrane` (a membrane term on triangles, e.g. fabric bonded to a body),
 :class:`Bending` (quadratic bending of a sheet), :func:`shell_body` (cloth and thin shells
-alone: a body of triangles, no tets),
+alone: a body of triangles, no tets), :class:`Drag` (air drag and wind on triangles),
 :class:`Options`, :class:`Model`, :class:`Params`, :class:`State`, :class:`SceneError`. A
 scene owns its physics: ``build([SoftBody(mesh, material, fixed=..., actuators=[...]), ...],
 skeleton=..., obstacles=[...])`` composes the step (the skeleton's reduced
@@ -64,6 +64,7 @@ _NAMES = {
     "Material": "softbody.material",
     "RigidBody": "softbody.rigid",
     **dict.fromkeys(("Bending", "Membrane", "shell_body"), "softbody.shell"),
+    "Drag": "softbody.aero",
     "Skeleton": "softbody.skeleton",
     "Contact": "softbody.contact",
     "Touch": "softbody.contact.pairs",

@@ -4,7 +4,7 @@
 **Energy terms.** The objective of an implicit step is the inertia of the scene plus a sum
 of energy terms (:class:`Term`): the bodies' elasticity and damping, actuators (muscles,
 cavities, pneumatic cells, joint torques and servos) and whatever a user adds (a spring
-between two bodies, a membrane on a surface). A term contributes in one of three ways,
+between two bodies, a membrane on a surface). A term contributes in one of four ways,
 one base class each, so that the step dispatches on the type of a term rather than on
 which methods it happens to have:
 
@@ -17,6 +17,8 @@ which methods it happens to have:
   :meth:`VertexTerm.blocks`), as ShapeOp's constraints add their triplets.
 * :class:`VolumeTerm`: new targets for the volume term of some tets
   (``volume_targets``), e.g. pneumatic cells.
+* :class:`DissipationTerm`: a dissipation potential of the velocities (``dissipation``),
+  e.g. air drag and wind on a sheet; a step adds ``h D((x - x_n)/h)`` to its objective.
 * :class:`VolumeElement`: a :class:`VertexTerm` that replaces the volume term of some tets
   (an element technology that does not lock for nearly incompressible materials).
 
@@ -101,6 +103,9 @@ class Term:
     """
 
     channel_names: tuple[str, ...]
+
+    #: The scene features (:data:`softbody._types.FEATURES`) a scene with this term has.
+    features: ClassVar[frozenset[str]] = frozenset()
 
     def channel_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """The range ``lower <= a <= upper`` of each channel's activation.
@@ -237,6 +242,40 @@ class VolumeElement(VertexTerm):
 
     def prepare(self, model, params, dminv, volume, w_v=None):
         """Per-rollout data; ``w_v`` ``(t,)``: the volume weights ``3 lambda`` of the scene's tets."""
+        raise NotImplementedError
+
+
+class DissipationTerm(Term):
+    """A force of the velocities that derives from a dissipation potential ``D(v)`` (W):
+    the force is ``-dD/dv``, e.g. air drag and wind on triangles
+    (:class:`softbody.aero.Drag`).
+
+    An implicit step of size ``h`` from ``x_n`` adds ``h D((x - x_n)/h)`` to its objective
+    (gradient ``dD/dv``), with the term's geometry read at the step's start ``x_n``: for a
+    convex ``D`` the step stays a convex problem in the term, and its stationary point
+    balances the force at the step's end velocity. A static objective (a static solve, or
+    the forces an explicit step takes) holds the force at the given velocities ``v_n`` as a
+    constant load (a static solve has ``v_n = 0``: wind on a body at rest).
+
+    It adds no blocks to the prefactored PD matrix (its curvature depends on the velocity):
+    the nonlinear solver learns it. Without control channels; ``init_params`` and
+    ``prepare`` default to none (``()``).
+    """
+
+    channel_names: tuple[str, ...] = ()
+    features: ClassVar[frozenset[str]] = frozenset({"velocity forces"})
+
+    def init_params(self):
+        """No design parameters (``()``) unless a subclass has some."""
+        return ()
+
+    def prepare(self, model, params, dminv, volume):
+        """No per-rollout data (``()``) unless a subclass needs some."""
+        return ()
+
+    def dissipation(self, v, x, prep, activation):
+        """``(D (), dD/dv (n, 3))`` at velocities ``v`` ``(n, 3)`` (m/s), with the term's
+        geometry (e.g. a triangle's normal) taken at positions ``x`` ``(n, 3)``."""
         raise NotImplementedError
 
 

@@ -53,17 +53,18 @@ FEATURES = {
     "rigid bodies": "RigidBody",
     "motion": "SoftBody(motion=...)",
     "partly held vertices": "Fix(..., axes=...) with fewer than three axes",
+    "velocity forces": "a DissipationTerm, e.g. aero.Drag: air drag and wind",
 }
 
 
 def scene_features(*, contact: bool, pairs: bool, skeleton: bool, rigid: bool, motion: bool,
-                   partial: bool) -> frozenset[str]:
+                   partial: bool, terms=()) -> frozenset[str]:
     """The names in :data:`FEATURES` of the features a scene has (arguments: contact rows,
     pair rows among them, a skeleton of the user's, rigid bodies, moving clamps, partly
-    held vertices)."""
+    held vertices; and the energy terms, each bringing its ``features``)."""
     present = {"pair contact": pairs, "contact": contact, "skeleton": skeleton, "rigid bodies": rigid,
                "motion": motion, "partly held vertices": partial}
-    return frozenset(name for name, has in present.items() if has)
+    return frozenset(name for name, has in present.items() if has).union(*(term.features for term in terms))
 
 
 @dataclass(frozen=True)
@@ -298,7 +299,8 @@ class Model:
         rigid = sum(part.rigid is not None for part in self.bodies)
         return scene_features(contact=self.has_contact, pairs=any(g.kind == "pair" for g in self.rows),
                               skeleton=self.rig is not None and len(self.rig.skeleton.links) > rigid,
-                              rigid=rigid > 0, motion=self.moving, partial=self.free_mask.shape[1] > 1)
+                              rigid=rigid > 0, motion=self.moving, partial=self.free_mask.shape[1] > 1,
+                              terms=self.terms)
 
     @property
     def has_contact(self) -> bool:

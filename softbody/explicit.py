@@ -2,15 +2,16 @@
 
 One step with time step ``h`` from ``(x_n, v_n)``::
 
-    v_{n+1} = v_n + h M^-1 (f(x_n) - alpha M v_n - f_beta(x_n, v_n) + M g + f_ext)
+    v_{n+1} = v_n + h M^-1 (f(x_n) - alpha M v_n - f_beta(x_n, v_n) + f_d(x_n, v_n) + M g + f_ext)
     x_{n+1} = x_n + h v_{n+1}
 
 with ``f = -dE/dx`` the simulator's elastic and actuator forces (the gradient of
 :func:`softbody.objective.step_objective`'s static objective, so every term the implicit
-solver sees is here too), ``alpha M v`` the mass damping and ``f_beta`` the strain-rate
-damping force ``beta w_s V R sym(R^T F')`` (the limit the ODE reference uses). Rotations
-are warm-started from the previous step (``options.rotation_iterations`` Newton steps),
-which at explicit time steps is converged to round-off.
+solver sees is here too), ``alpha M v`` the mass damping, ``f_beta`` the strain-rate
+damping force ``beta w_s V R sym(R^T F')`` (the limit the ODE reference uses) and ``f_d`` the
+dissipation terms' forces (air drag, wind). Rotations are warm-started from the previous
+step (``options.rotation_iterations`` Newton steps), which at explicit time steps is
+converged to round-off.
 
 Each step costs one force evaluation and no solve, but the step must resolve the fastest
 mode of the mesh: undamped and linearised, the scheme is stable exactly when

@@ -230,7 +230,7 @@ def build(
     for i, term in enumerate(terms):
         if not isinstance(term, Term):
             raise SceneError(f"terms[{i}] is a {type(term).__name__}, not an energy term; subclass "
-                             "softbody._interfaces.VertexTerm (or ElementTerm, VolumeTerm)")
+                             "softbody._interfaces.VertexTerm (or ElementTerm, VolumeTerm, DissipationTerm)")
     generators = tuple(rows)  # (the name rows is the pattern's below)
     for i, generator in enumerate(generators):
         if not isinstance(generator, (Rows, PairRows)):
@@ -260,7 +260,8 @@ def build(
     features = scene_features(
         contact=bool(obstacles or generators), pairs=any(g.kind == "pair" for g in generators),
         skeleton=isinstance(skeleton, Skeleton) and bool(skeleton.links),
-        rigid=bool(scene.links), motion=any(part.motion is not None for part in scene.parts), partial=partial)
+        rigid=bool(scene.links), motion=any(part.motion is not None for part in scene.parts), partial=partial,
+        terms=[t for t in (*scene.terms, *actuators, *terms) if isinstance(t, Term)])
     _check_capabilities(features, options, reduced=skeleton is not None or bool(scene.links))
     rig = _rig(mesh, skeleton, free, scene)
     rigid = tuple(part for part in scene.parts if part.rigid is not None)

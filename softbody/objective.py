@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 
 from softbody import rotation as rot
-from softbody._interfaces import ElementTerm, VertexTerm, VolumeTerm
+from softbody._interfaces import DissipationTerm, ElementTerm, VertexTerm, VolumeTerm
 from softbody.elastic import (corotated, deformation_gradient, scatter_stress, shape_gradients, strain_rate_damping,
                               stress_derivative_product)
 from softbody._types import RESULTS, Model, Prepared, State, StepInfo
@@ -75,9 +75,30 @@ def vertex_energy(model: Model, prep: Prepared, x, slices):
     return energy, grad
 
 
+def dissipation_energy(model: Model, prep: Prepared, x, x_n, v_n, slices):
+    """``(energy (), gradient (n, 3))`` of the :class:`~softbody._interfaces.DissipationTerm`
+    terms in the step objective at ``x``: ``h D((x - x_n)/h)`` with the terms' geometry at
+    ``x_n`` in a time step (``h = prep.dt``); in a static objective, the forces at the
+    velocities ``v_n`` held as a load, ``dD/dv(v_n) . x``."""
+    energy, grad = 0.0, jnp.zeros_like(x)
+    static = prep.inertia.static
+    for term, tp, a in zip(model.terms, prep.terms, slices):
+        if isinstance(term, DissipationTerm):
+            if static:
+                _, g_t = term.dissipation(v_n, x_n, tp, a)
+                e_t = jnp.sum(g_t * x)
+            else:
+                d_t, g_t = term.dissipation((x - x_n) / prep.dt, x_n, tp, a)
+                e_t = prep.dt * d_t
+            energy, grad = energy + e_t, grad + g_t
+    return energy, grad
+
+
 def has_vertex_terms(model: Model) -> bool:
-    """Whether some term is an energy of the positions (:class:`~softbody._interfaces.VertexTerm`)."""
-    return any(isinstance(term, VertexTerm) for term in model.terms)
+    """Whether some term is an energy of the positions (:class:`~softbody._interfaces.VertexTerm`)
+    or a dissipation of the step's velocity (:class:`~softbody._interfaces.DissipationTerm`):
+    the objective's part beyond the tets and the inertia."""
+    return any(isinstance(term, (VertexTerm, DissipationTerm)) for term in model.terms)
 
 
 class _Terms(NamedTuple):
@@ -85,7 +106,7 @@ class _Terms(NamedTuple):
     :func:`step_hessian`."""
 
     tet: Callable  # (f, q) -> (energy (), stress (3, 3, t), q): every per-tet term
-    vertex: Callable  # x -> (energy (), grad (n, 3)): terms of positions (cavities, joints)
+    vertex: Callable  # x -> (energy (), grad (n, 3)): terms of positions (cavities, joints) and dissipations
     inertia: Callable  # x -> (phi (), grad (n, 3)): inertia and mass damping, or the load
     scale: Array
 
@@ -110,8 +131,14 @@ def _terms(model: Model, prep: Prepared, x_n, v_n, q_n, activation, force) -> _T
         r, q = rot.rotation(f, q, iters)
         return (*tet_stress(model, prep, f, r, slices, target, damping), q)
 
+    dissipative = any(isinstance(term, DissipationTerm) for term in model.terms)
+
     def vertex(x):
-        return vertex_energy(model, prep, x, slices)
+        e_v, g_v = vertex_energy(model, prep, x, slices)
+        if not dissipative:
+            return e_v, g_v
+        e_d, g_d = dissipation_energy(model, prep, x, x_n, v_n, slices)
+        return e_v + e_d, g_v + g_d
 
     return _Terms(tet=tet, vertex=vertex, inertia=inertia, scale=scale)
 
@@ -293,9 +320,10 @@ def solve_step(model: Model, prep: Prepared, state: State, activation, force, *,
 
 
 def accelerations(model: Model, prep: Prepared, state: State, activation, force) -> tuple[Array, Array]:
-    """The accelerations ``M^-1 (f(x) - alpha M v - f_beta(x, v) + M g + f_ext)`` of the
-    semi-discrete model at ``state`` (``f = -dE/dx`` the elastic and actuator forces,
-    ``f_beta`` the strain-rate damping force ``beta w_s V R sym(R^T F')``): what the
+    """The accelerations ``M^-1 (f(x) - alpha M v - f_beta(x, v) + f_d(x, v) + M g + f_ext)``
+    of the semi-discrete model at ``state`` (``f = -dE/dx`` the elastic and actuator forces,
+    ``f_beta`` the strain-rate damping force ``beta w_s V R sym(R^T F')``, ``f_d = -dD/dv``
+    the dissipation terms' forces, e.g. drag): what the
     explicit integrator steps with and what starts BDF2.
 
     Arguments:
@@ -310,7 +338,7 @@ def accelerations(model: Model, prep: Prepared, state: State, activation, force)
     x, v = state.x, state.v
     # The static objective's gradient is dE/dx - M g - f_ext: the forces without inertia.
     forces = dataclasses.replace(prep, inertia=Statics())
-    evaluate, _ = step_objective(model, forces, x, jnp.zeros_like(x), None, activation, force)
+    evaluate, _ = step_objective(model, forces, x, v, None, activation, force)  # v: dissipations' velocity
     free = jnp.asarray(model.free_mask)
     _, grad, q = evaluate(x, state.rot)  # dE/dx - M g - f_ext on the free vertices
     total = -grad - prep.mass_alpha * v

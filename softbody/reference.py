@@ -7,8 +7,8 @@
   included and the stopping test ``|grad Phi| <= tol |M s / h^2| + atol`` means the same
   thing. The Hessian is the true one, assembled sparsely from per-tet ``12 x 12`` blocks
   (forward-mode derivatives of the per-tet gradient, the rotation's derivative included)
-  plus the lumped inertia and mass damping on the diagonal; vertex actuator terms (cavity
-  pressure) add their Hessian densely. Each Newton system is solved on the host with
+  plus the lumped inertia and mass damping on the diagonal; vertex terms (cavity
+  pressure, sheets) and dissipation terms (drag) add their Hessian densely. Each Newton system is solved on the host with
   SciPy's sparse LU over the free degrees of freedom, followed by a backtracking line
   search.
 * :func:`diffrax_rollout`: the semi-discrete FEM ODE of the same model,
@@ -40,8 +40,8 @@ from softbody._interfaces import Capabilities
 from softbody.elastic import deformation_gradient, shape_gradients, strain_rate_damping
 from softbody.model import Model, Params, Prepared, SceneError, State, initial_state, prepare
 from softbody._types import RESULTS, StepInfo
-from softbody.objective import (activation_slices, has_vertex_terms, step_objective, tet_stress, vertex_energy,
-                                volume_target)
+from softbody.objective import (activation_slices, dissipation_energy, has_vertex_terms, step_objective, tet_stress,
+                                vertex_energy, volume_target)
 from softbody.simulate import SimulationError, Trajectory, _activation, _check_controls
 
 Array = jax.Array
@@ -147,10 +147,15 @@ def _element_hessians(model, prep, x_n, q_n, activation, x, q):
 
 
 @functools.partial(jax.jit, static_argnames=("model",))
-def _vertex_hessian(model, prep, activation, x):
-    """Dense Hessian ``(n, 3, n, 3)`` of the vertex actuator terms at ``x``."""
+def _vertex_hessian(model, prep, activation, x_n, v_n, x):
+    """Dense Hessian ``(n, 3, n, 3)`` at ``x`` of the vertex terms and the dissipation terms
+    (of a step from ``x_n``, ``v_n``)."""
     slices = activation_slices(model, activation)
-    return jax.jacfwd(lambda y: _vertex_gradient(model, prep, y, slices))(x)
+
+    def gradient(y):
+        return _vertex_gradient(model, prep, y, slices) + dissipation_energy(model, prep, y, x_n, v_n, slices)[1]
+
+    return jax.jacfwd(gradient)(x)
 
 
 class _Assembler:
@@ -219,7 +224,7 @@ def _newton(model, prep, x_n, v_n, q_n, activation, force, x0, *, tol, max_iter)
         blocks = np.asarray(_element_hessians(model, prep, x_n, q_n, activation, x, q))
         dense = None
         if vertex_terms:
-            dense = np.asarray(_vertex_hessian(model, prep, activation, x)).reshape(3 * model.n_vertices, -1)
+            dense = np.asarray(_vertex_hessian(model, prep, activation, x_n, v_n, x)).reshape(3 * model.n_vertices, -1)
         hess = assembler.matrix(blocks, diagonal, dense)
         d, slope = _descent_direction(hess, g)
         step = 1.0
@@ -307,7 +312,8 @@ NEWTON = Capabilities(
 
 #: What diffrax_rollout cannot integrate.
 DIFFRAX = Capabilities(
-    refuses={**NEWTON.refuses, "partly held vertices": "integrates whole free vertices"},
+    refuses={**NEWTON.refuses, "partly held vertices": "integrates whole free vertices",
+             "velocity forces": "integrates forces of the positions and the material's damping only"},
     instead="step such a scene with softbody.simulate.rollout (newton_rollout takes partly held vertices)")
 
 

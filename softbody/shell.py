@@ -34,7 +34,8 @@ also weigh on its out-of-plane motion: a static solve of a sheet whose sag is re
 bending alone converges slowly (thousands of iterations for a stiff plate); dynamics at
 cloth time steps converge in a few iterations.
 
-Not yet here: contact of sheet faces (with themselves or other bodies), aerodynamic drag.
+Air drag and wind on a sheet: :class:`softbody.aero.Drag`. Not yet here: contact of sheet
+faces (with themselves or other bodies).
 """
 
 from __future__ import annotations
@@ -77,6 +78,49 @@ def _rest_frames(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray,
                    np.stack([np.sum(w * e1, 1), np.sum(w * e2, 1)], 1)], 1)
     dminv = np.linalg.inv(dm)
     return np.concatenate([-dminv.sum(axis=1, keepdims=True), dminv], axis=1), area
+
+
+def triangle_selection(mesh, triangles, owner: str) -> tuple[np.ndarray, np.ndarray]:
+    """A term's triangles, checked: the rest points ``(n, 3)`` float64 and the triangles
+    ``(m, 3)`` int64.
+
+    Arguments:
+        mesh: a :class:`~softbody.meshing.TetMesh`, or its points ``(n, 3)``.
+        triangles: ``(m, 3)`` vertex indices, or the name of a region of the mesh whose faces
+            they are.
+        owner: the term's name, which starts every message.
+
+    Raises:
+        SceneError: an unknown region or one without faces, an empty selection, indices
+            that are not ``(m, 3)`` integers inside the mesh, or a degenerate (zero-area)
+            triangle.
+    """
+    regions = mesh.regions if isinstance(mesh, TetMesh) else {}
+    points = np.asarray(mesh.points if isinstance(mesh, TetMesh) else mesh, np.float64)
+    if isinstance(triangles, str):
+        if triangles not in regions:
+            raise SceneError(f"{owner}: no region {triangles!r} in the mesh; it has {sorted(regions)}")
+        name, triangles = triangles, regions[triangles].faces
+        if len(triangles) == 0:
+            raise SceneError(f"{owner}: region {name!r} names no triangles (faces); select a surface region")
+    tri = np.asarray(triangles)
+    if tri.size == 0:
+        raise SceneError(f"{owner}: the triangle selection names no triangles (shape {tri.shape}); give (m, 3) "
+                         "vertex indices with m >= 1 or a surface region's name, e.g. "
+                         "mesh.regions[name].faces")
+    if tri.ndim != 2 or tri.shape[1] != 3 or not np.issubdtype(tri.dtype, np.integer):
+        raise SceneError(f"{owner}: triangles must be (m, 3) vertex indices with m >= 1, got {tri.dtype} of "
+                         f"shape {tri.shape}")
+    if tri.min() < 0 or tri.max() >= len(points):
+        raise SceneError(f"{owner}: triangle indices must lie in [0, {len(points)})")
+    scale = np.ptp(points[tri.ravel()], axis=0).max()
+    doubled = np.linalg.norm(np.cross(points[tri[:, 1]] - points[tri[:, 0]], points[tri[:, 2]] - points[tri[:, 0]]),
+                             axis=1)
+    bad = np.flatnonzero(doubled <= 1e-12 * scale**2)
+    if len(bad):
+        raise SceneError(f"{owner}: {len(bad)} degenerate (zero-area) triangles, e.g. {tri[bad[0]].tolist()}; "
+                         "remove them from the selection")
+    return points, tri.astype(np.int64)
 
 
 def _check_sheet(triangles: np.ndarray) -> None:
@@ -151,35 +195,11 @@ class Membrane(VertexTerm):
                 edge shared by more than two triangles (a non-manifold sheet), or non-physical
                 material values (e.g. thickness <= 0).
         """
-        regions = mesh.regions if isinstance(mesh, TetMesh) else {}
-        points = np.asarray(mesh.points if isinstance(mesh, TetMesh) else mesh, np.float64)
-        if isinstance(triangles, str):
-            if triangles not in regions:
-                raise SceneError(f"Membrane: no region {triangles!r} in the mesh; it has {sorted(regions)}")
-            name, triangles = triangles, regions[triangles].faces
-            if len(triangles) == 0:
-                raise SceneError(f"Membrane: region {name!r} names no triangles (faces); select a surface region")
-        tri = np.asarray(triangles)
-        if tri.size == 0:
-            raise SceneError(f"Membrane: the triangle selection names no triangles (shape {tri.shape}); give (m, 3) "
-                             "vertex indices with m >= 1 or a surface region's name, e.g. "
-                             "mesh.regions[name].faces")
-        if tri.ndim != 2 or tri.shape[1] != 3 or not np.issubdtype(tri.dtype, np.integer):
-            raise SceneError(f"Membrane: triangles must be (m, 3) vertex indices with m >= 1, got {tri.dtype} of "
-                             f"shape {tri.shape}")
-        if tri.min() < 0 or tri.max() >= len(points):
-            raise SceneError(f"Membrane: triangle indices must lie in [0, {len(points)})")
         if not (np.isfinite(E) and E > 0 and np.isfinite(thickness) and thickness > 0 and 0 <= nu < 0.5
                 and np.isfinite(areal_density) and areal_density >= 0):
             raise SceneError(f"Membrane needs E > 0, thickness > 0, 0 <= nu < 0.5 and areal_density >= 0, got E={E}, "
                              f"nu={nu}, thickness={thickness}, areal_density={areal_density}")
-        scale = np.ptp(points[tri.ravel()], axis=0).max()
-        doubled = np.linalg.norm(np.cross(points[tri[:, 1]] - points[tri[:, 0]], points[tri[:, 2]] - points[tri[:, 0]]),
-                                 axis=1)
-        bad = np.flatnonzero(doubled <= 1e-12 * scale**2)
-        if len(bad):
-            raise SceneError(f"Membrane: {len(bad)} degenerate (zero-area) triangles, e.g. {tri[bad[0]].tolist()}; "
-                             "remove them from the selection")
+        points, tri = triangle_selection(mesh, triangles, "Membrane")
         _check_sheet(tri)
         gradients, area = _rest_frames(points, tri)
         return cls(tri.astype(np.int32), gradients, area, float(E), float(nu), float(thickness), float(areal_density))

@@ -15,7 +15,7 @@ any step that did not succeed unless called with ``throw=False``; then the codes
 ``jax.jit`` or ``jax.grad``, where the compiled program fails with it at run time, as a
 ``jax.errors.JaxRuntimeError``) or not.
 
-Energy terms (``model.terms``: actuators and user terms) come in three kinds, one base class each
+Energy terms (``model.terms``: actuators and user terms) come in four kinds, one base class each
 (:mod:`softbody._interfaces`):
 
 * :class:`~softbody._interfaces.ElementTerm`,
@@ -29,6 +29,9 @@ Energy terms (``model.terms``: actuators and user terms) come in three kinds, on
 * :class:`~softbody._interfaces.VolumeTerm`,
   ``volume_targets(prep, a) -> (tets (m,), s (m,))``: the volume term of those tets
   targets ``det F = s^3`` instead of 1 (pneumatic cells: ``s = a^(1/3)``).
+* :class:`~softbody._interfaces.DissipationTerm`,
+  ``dissipation(v, x, prep, a) -> (D, dD/dv (n, 3))``: forces ``-dD/dv`` of the velocities
+  (air drag and wind); a step adds ``h D((x - x_n)/h)`` with the geometry at ``x_n``.
 
 Every term also has ``channel_names``, ``channel_bounds()``, ``init_params()`` and
 ``prepare(model, params, dminv, volume)``. Concrete activations outside a channel's bounds

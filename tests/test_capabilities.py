@@ -11,6 +11,7 @@ import pytest
 
 from softbody import simulate
 from softbody._interfaces import Capabilities
+from softbody.aero import Drag
 from softbody._types import FEATURES
 from softbody.contact.active_set import ActiveSet
 from softbody.contact import Contact
@@ -53,6 +54,9 @@ def _scene(feature, options=Options()):
                      options=options)
     if feature == "motion":
         return build(SoftBody(BAR, MATERIAL, fixed="fixed", motion=lambda t: (jnp.eye(3), jnp.asarray([t, 0, 0]))),
+                     options=options)
+    if feature == "velocity forces":
+        return build(SoftBody(BAR, MATERIAL, fixed="fixed", actuators=[Drag.on(BAR, BAR.surface, wind=(1, 0, 0))]),
                      options=options)
     if feature == "partly held vertices":
         return build(SoftBody(BAR, MATERIAL, fixed=[Fix("fixed"), Fix("ymin", axes="y")]), options=options)
