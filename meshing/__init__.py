@@ -18,7 +18,7 @@ such as ``"fixed"`` and ``"tip"`` (vertices, and the surface triangles among the
 Example robots: :data:`EXAMPLES` (``cantilever``, ``finger``, ``quadruped``,
 ``caterpillar``, ``cube``, ``ball``). Surfaces: :func:`mesh_file` (STL, OBJ, STEP).
 Structured boxes without gmsh: :func:`grid_box`. Flat sheets of triangles (cloth, thin
-shells; no tets): :mod:`softbody.meshing.sheet` (``rectangle``, ``disc``).
+shells; no tets): :mod:`softbody.meshing.sheet` (``rectangle``, ``disc``, ``grid``).
 """
 
 from .examples import EXAMPLES, ball, cantilever, caterpillar, cube, finger, quadruped

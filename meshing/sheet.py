@@ -1,10 +1,11 @@
-"""Flat sheets as triangle meshes (gmsh OCC, 2-D Delaunay): cloth and thin shells.
+"""Flat sheets as triangle meshes: cloth and thin shells (:func:`rectangle`, :func:`disc`:
+gmsh OCC, 2-D Delaunay; :func:`grid`: structured, without gmsh).
 
 A sheet is a :class:`~softbody.meshing.TetMesh` without tets: its ``surface`` holds the
 triangles (normals along ``+z``), its region ``"sheet"`` all vertices and triangles, and
 any ``select`` regions their vertices and the triangles among them (as
-:func:`~softbody.meshing.select_regions` makes them). :class:`softbody.shell.Shell` makes
-a body of it.
+:func:`~softbody.meshing.select_regions` makes them). :func:`softbody.shell.shell_body`
+makes a body of it.
 """
 
 from __future__ import annotations
@@ -114,3 +115,41 @@ def disc(radius: float, size: float, *, rings: Sequence[float] = (),
             gmsh.model.occ.fragment([(2, outer)], [(1, c) for c in circles])
 
     return _sheet(make, size, select, "disc")
+
+
+def grid(width: float, height: float, cells: tuple[int, int], *,
+         select: Mapping[str, Selection] | None = None) -> TetMesh:
+    """The rectangle ``0 <= x <= width``, ``0 <= y <= height`` in the plane ``z = 0`` as a
+    structured grid of ``cells[0] x cells[1]`` rectangles, each cut into two triangles by a
+    diagonal that alternates between neighbouring cells (no preferred direction): the
+    ``(nx + 1) x (ny + 1)`` vertices of a cloth benchmark (vertex ``i (ny + 1) + j`` at
+    ``(i width / nx, j height / ny)``), without gmsh.
+
+    Arguments:
+        width, height: the sides, m (> 0); cells: ``(nx, ny)``, integers >= 1.
+        select: region name -> selection.
+
+    Returns:
+        A :class:`~softbody.meshing.TetMesh` without tets (see the module docstring).
+
+    Raises:
+        MeshError: non-positive sides, cell counts that are not integers >= 1, or a
+            selection that matches no vertex.
+    """
+    if not (np.isfinite(width) and np.isfinite(height) and width > 0 and height > 0):
+        raise MeshError(f"grid: width and height must be > 0, got {width}, {height}")
+    if len(cells) != 2 or not all(isinstance(c, (int, np.integer)) and c >= 1 for c in cells):
+        raise MeshError(f"grid: cells must be two integers >= 1 (cells along x and y), got {cells!r}")
+    nx, ny = int(cells[0]), int(cells[1])
+    a, b = np.meshgrid(np.linspace(0.0, width, nx + 1), np.linspace(0.0, height, ny + 1), indexing="ij")
+    points = np.stack([a.ravel(), b.ravel(), np.zeros(a.size)], axis=1)
+    idx = np.arange(a.size).reshape(nx + 1, ny + 1)
+    i, j = (m.ravel() for m in np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij"))
+    p, q, r, s = idx[i, j], idx[i + 1, j], idx[i + 1, j + 1], idx[i, j + 1]
+    odd = ((i + j) % 2 == 1)[:, None]
+    first = np.where(odd, np.stack([p, q, r], 1), np.stack([p, q, s], 1))
+    second = np.where(odd, np.stack([p, r, s], 1), np.stack([q, r, s], 1))
+    tri = np.concatenate([first, second]).astype(np.int32)  # counter-clockwise: normals along +z
+    mesh = TetMesh(points, np.zeros((0, 4), np.int32), tri,
+                   {"sheet": Region(np.arange(len(points)), faces=tri)})
+    return select_regions(mesh, select or {})

@@ -256,6 +256,28 @@ def test_sheet_meshes_are_flat_triangles_covering_the_shape():
     assert boundary == (np.hypot(disc.points[:, 0], disc.points[:, 1]) > 0.1 - 1e-9).sum()  # the rim's, a closed loop
 
 
+def test_a_structured_sheet_is_a_grid_of_alternating_diagonals():
+    """``sheet.grid``: ``(nx + 1) (ny + 1)`` vertices at their grid points, ``2 nx ny``
+    triangles facing +z that tile the rectangle, half the cells cut along each diagonal,
+    a manifold sheet (every interior edge a hinge); bad sizes refused."""
+    mesh = sheet.grid(0.3, 0.2, (6, 4), select={"top": OnPlane("y", 0.2)})
+    assert mesh.n_vertices == 7 * 5 and mesh.surface.shape == (48, 3) and mesh.n_tets == 0
+    np.testing.assert_allclose(mesh.points[5 * 3 + 2], [0.15, 0.1, 0.0])
+    p = mesh.points[mesh.surface]
+    normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    assert np.all(normal[:, 2] > 0) and normal[:, 2].sum() / 2 == pytest.approx(0.06, rel=1e-12)
+    diagonals = [e for t in mesh.surface for e in itertools.combinations(sorted(t), 2)
+                 if np.ptp(mesh.points[list(e), 0]) > 0 and np.ptp(mesh.points[list(e), 1]) > 0]
+    rising = sum(np.sign(np.diff(mesh.points[list(e), 0])) == np.sign(np.diff(mesh.points[list(e), 1]))
+                 for e in set(diagonals))
+    assert len(set(diagonals)) == 24 and rising == 12
+    assert len(hinges(mesh.surface)) == 3 * 48 // 2 - (6 + 4)  # interior edges: all but the rim's 2 (6 + 4)
+    assert sorted(mesh.regions["top"].vertices) == list(range(4, 35, 5))
+    for bad in ((0.3, 0.0, (6, 4)), (0.3, 0.2, (6, 0)), (0.3, 0.2, (2.5, 4))):
+        with pytest.raises(MeshError, match="grid: "):
+            sheet.grid(*bad)
+
+
 def test_bad_sheets_are_refused_before_compiling():
     mesh = sheet.rectangle(0.1, 0.05, 0.025, select={"clamp": OnPlane("x", 0.0)})
     good = {"E": 1e6, "nu": NU, "thickness": 1e-3, "areal_density": 0.2}
