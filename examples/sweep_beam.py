@@ -31,7 +31,7 @@ def point(scene, E, dt, n_steps=8):
     models = scene["models"]
     if dt not in models:
         models[dt] = build(SoftBody(scene["mesh"], Material(E=1e5, nu=0.45, density=1000.0), fixed="fixed"),
-                           options=Options(dt=dt, tol=1e-8))
+                           options=Options(dt=dt, tol=1e-8, max_iter=2000))
     model, params = models[dt]
     p = params.replace(E=jnp.full_like(params.E, E))
     traj = rollout(model, p, initial_state(model, p), n_steps=n_steps)
