@@ -12,6 +12,7 @@ derivative-free run and a gradient run can be compared on the same simulation bu
 from __future__ import annotations
 
 import math
+import re
 import time
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
@@ -75,9 +76,10 @@ def cmaes(
 
     Arguments:
         fun: scalar, JAX-traceable function of the pytree ``theta`` (compiled once).
-            A simulation that fails (a non-finite value, or the simulator's non-finite
-            state error) counts as a simulation and is ranked below every finite value
-            seen, so the search moves away from it.
+            A simulation that fails (a non-finite value, or any of the simulator's step
+            errors: non-finite state, the iteration cap, inverted tets) counts as a
+            simulation and is ranked below every finite value seen, so the search moves
+            away from it.
         theta0: the initial mean (a pytree of float arrays).
         sigma0: the initial step size, in the units of ``theta`` (> 0).
         budget: the maximum number of evaluations (simulations); the last generation is
@@ -162,11 +164,17 @@ def cmaes(
                      elapsed=np.asarray(hist_t), failed=failed, unravel=unravel)
 
 
+#: The start of the simulator's message for a failed step (softbody.simulate's check): "step 12: ..."
+_STEP_FAILED = re.compile(r"\bstep \d+: ")
+
+
 def _evaluate(value, x) -> float:
-    """``value(x)`` as a float; ``nan`` when the simulation stopped on a non-finite state."""
+    """``value(x)`` as a float; ``nan`` when a step of its simulation failed (non-finite
+    state, the iteration cap, inverted tets, ...: what sweep workers record as a failed
+    point, so that a search evaluated here and one on workers rank it alike)."""
     try:
         return float(value(jnp.asarray(x)))
     except jax.errors.JaxRuntimeError as err:
-        if "non-finite" not in str(err):
+        if not _STEP_FAILED.search(str(err)):
             raise
         return math.nan

@@ -70,6 +70,17 @@ def hand_layouts(mesh) -> dict[str, np.ndarray]:
     return layouts
 
 
+def training_problem():
+    """The caterpillar's mesh and its co-design problem over the training periods: the gait
+    on the control grid, the muscle's fibre weights within the budget and the cap, the
+    distance travelled along x as the loss."""
+    mesh, model, params = caterpillar()
+    distance = sc.ForwardDistance(model, axis=(1.0, 0.0, 0.0))
+    grid = sc.ControlGrid(TRAIN_PERIODS * PERIOD, model.n_channels, N_KNOTS, period=PERIOD, upper=A_MAX)
+    design = sc.Design(model, params, muscles=[0], budget=float(mesh.n_tets), max_weight=MAX_WEIGHT)
+    return mesh, sc.CoDesignProblem(model, params, distance, grid, design)
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--out", required=True, type=Path, help="output folder")
@@ -81,12 +92,9 @@ def main(argv=None):
     start = time.perf_counter()
 
     with progress.task("meshing and building the caterpillar"):
-        mesh, model, params = caterpillar()
+        mesh, problem = training_problem()
+    model, params, distance, grid, design = problem.model, problem.params, problem.loss, problem.grid, problem.design
     n_tets = mesh.n_tets
-    distance = sc.ForwardDistance(model, axis=(1.0, 0.0, 0.0))
-    grid = sc.ControlGrid(TRAIN_PERIODS * PERIOD, model.n_channels, N_KNOTS, period=PERIOD, upper=A_MAX)
-    design = sc.Design(model, params, muscles=[0], budget=float(n_tets), max_weight=MAX_WEIGHT)
-    problem = sc.CoDesignProblem(model, params, distance, grid, design)
     long_grid = sc.ControlGrid(EVAL_PERIODS * PERIOD, model.n_channels, N_KNOTS, period=PERIOD, upper=A_MAX)
     evaluation = sc.CoDesignProblem(model, params, distance, long_grid, design)
     gait0 = jnp.asarray(np.random.default_rng(args.seed).normal(scale=0.5, size=grid.shape))

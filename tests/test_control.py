@@ -256,6 +256,21 @@ def test_cmaes_on_a_quadratic_counts_simulations():
         sc.cmaes(lambda t: jnp.sum(t ** 2), jnp.ones(2), sigma0=0.3, budget=0)
 
 
+def test_cmaes_ranks_a_simulation_stopped_at_the_iteration_cap_last_instead_of_stopping():
+    """A candidate whose rollout stops at the iteration cap is a failed simulation (as on sweep
+    workers), not the end of the search: here every one of them is."""
+    model, params = build(SoftBody(grid_box((0.1, 0.02, 0.02), (3, 1, 1)), Material(E=1e5, nu=0.3),
+                                   fixed="fixed"), options=Options(dt=0.01, tol=1e-12, max_iter=1))
+    state = initial_state(model, params)
+
+    def loss(log_e):
+        traj = rollout(model, params.replace(E=params.E * jnp.exp(log_e)), state, n_steps=2)
+        return jnp.sum(traj.x[-1, :, 2])
+
+    res = sc.cmaes(loss, jnp.zeros(1), sigma0=0.1, budget=4, popsize=4, progress=False)
+    assert res.failed == 4 and res.best_loss == math.inf
+
+
 # ------------------------------------------------------------------------ system identification
 
 
