@@ -566,30 +566,42 @@ def write_metrics(path: str | os.PathLike, metrics: Mapping[str, Any], force: bo
 
 
 class VertexStrain:
-    """Per-vertex strain: the Frobenius norm of each tet's Green strain, volume-averaged.
+    """Per-vertex strain: the Frobenius norm of each tet's Green strain, volume-averaged;
+    on vertices in no tet (a sheet's), that of the triangles around them, area-averaged.
 
     ``E = (F^T F - I) / 2`` with ``F = Ds Dm^-1`` per tet; each vertex takes the
-    volume-weighted mean of ``||E||_F`` over the tets around it. Zero at rest and under
-    rigid motions.
+    volume-weighted mean of ``||E||_F`` over the tets around it. A triangle's ``||E||_F``
+    is that of its in-plane Green strain, ``|g0^-1 g - I|_F / 2`` with ``g0``, ``g`` the
+    ``2 x 2`` metrics (edge dot products) at rest and now. Zero at rest and under rigid
+    motions; vertices on neither get 0.
 
     Arguments:
         points: ``(n, 3)`` rest positions.
         tets: ``(t, 4)`` vertex indices.
+        triangles: ``(f, 3)`` vertex indices (e.g. the mesh's surface), or ``None``.
     """
 
-    def __init__(self, points: np.ndarray, tets: np.ndarray):
+    def __init__(self, points: np.ndarray, tets: np.ndarray, triangles: np.ndarray | None = None):
         points = np.asarray(points, dtype=np.float64)
         self.tets = np.asarray(tets, dtype=np.int64)
         dm = self._edges(points[None])[0]
         vol = np.abs(np.linalg.det(dm)) / 6.0
         self.dm_inv = np.linalg.inv(dm)
         n, t = len(points), len(self.tets)
-        rows = self.tets.ravel()
-        cols = np.repeat(np.arange(t), 4)
-        w = scipy.sparse.csr_matrix((np.repeat(vol, 4), (rows, cols)), shape=(n, t))
-        total = np.asarray(w.sum(axis=1)).ravel()
-        total[total == 0] = 1.0  # vertices in no tet get strain 0
-        self.average = scipy.sparse.diags(1.0 / total) @ w
+        self.average = _averaging(self.tets, vol, n)
+        in_tet = np.zeros(n, bool)
+        in_tet[self.tets.ravel()] = True
+        tri = np.zeros((0, 3), np.int64) if triangles is None else np.asarray(triangles, np.int64).reshape(-1, 3)
+        self.triangles = tri[~in_tet[tri].any(axis=1)]  # those of sheets: no vertex in a tet
+        g0 = self._metric(points[None])[0]
+        area = 0.5 * np.sqrt(np.maximum(np.linalg.det(g0), 0.0))
+        self.g0_inv = np.linalg.inv(g0) if len(self.triangles) else g0
+        self.sheet_average = _averaging(self.triangles, area, n)
+
+    def _metric(self, x: np.ndarray) -> np.ndarray:
+        p = x[:, self.triangles]  # (T, f, 3, 3)
+        d = np.swapaxes(p[:, :, 1:] - p[:, :, :1], -1, -2)  # (T, f, 3, 2): edge vectors
+        return np.swapaxes(d, -1, -2) @ d
 
     def _edges(self, x: np.ndarray) -> np.ndarray:
         p = x[:, self.tets]  # (T, t, 4, 3)
@@ -605,7 +617,7 @@ class VertexStrain:
             ``(T, n)`` float64 strain measure (dimensionless, >= 0).
         """
         x = np.asarray(x, dtype=np.float64)
-        t = len(self.tets)
+        t = len(self.tets) + len(self.triangles)
         chunk = max(1, int(4_000_000 // max(t, 1)))  # about 300 MB of temporaries at most
         out = np.empty((len(x), x.shape[1]))
         for s in range(0, len(x), chunk):
@@ -613,11 +625,27 @@ class VertexStrain:
             e = 0.5 * (np.swapaxes(f, -1, -2) @ f - np.eye(3))
             per_tet = np.sqrt((e * e).sum(axis=(-1, -2)))  # (T, t)
             out[s:s + chunk] = (self.average @ per_tet.T).T
+            if len(self.triangles):
+                e = 0.5 * (self.g0_inv @ self._metric(x[s:s + chunk]) - np.eye(2))
+                per_triangle = np.sqrt(np.maximum(np.einsum("...ij,...ji->...", e, e), 0.0))  # tr(E^2): E is similar to a symmetric one
+                out[s:s + chunk] += (self.sheet_average @ per_triangle.T).T
         return out
 
 
+def _averaging(cells: np.ndarray, size: np.ndarray, n: int):
+    """The ``(n, c)`` sparse matrix that averages per-cell values over the cells around each
+    vertex, weighted by ``size`` ``(c,)``; rows of vertices in no cell are zero."""
+    k = cells.shape[1]
+    w = scipy.sparse.csr_matrix((np.repeat(size, k), (cells.ravel(), np.repeat(np.arange(len(cells)), k))),
+                                shape=(n, len(cells)))
+    total = np.asarray(w.sum(axis=1)).ravel()
+    total[total == 0] = 1.0  # vertices in no cell get 0
+    return scipy.sparse.diags(1.0 / total) @ w
+
+
 def vertex_strain(result: Result) -> np.ndarray:
-    """Per-vertex strain of every frame, for colouring (see :class:`VertexStrain`).
+    """Per-vertex strain of every frame, for colouring (see :class:`VertexStrain`; a sheet's
+    vertices take its triangles' in-plane strain).
 
     Arguments:
         result: the trajectory.
@@ -625,7 +653,7 @@ def vertex_strain(result: Result) -> np.ndarray:
     Returns:
         ``(T, n)`` float64, zero at rest and under rigid motion.
     """
-    return VertexStrain(result.points, result.tets)(result.x)
+    return VertexStrain(result.points, result.tets, result.surface)(result.x)
 
 
 def vertex_displacement(result: Result) -> np.ndarray:

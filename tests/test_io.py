@@ -12,6 +12,7 @@ from softbody.cli import main
 from softbody.io import (
     Result,
     ResultError,
+    VertexStrain,
     color_options,
     read_vtu_series,
     to_vtu_series,
@@ -22,6 +23,7 @@ from softbody.io import (
     write_metrics,
 )
 from softbody.meshing.mesh import Region, TetMesh
+from softbody.meshing.sheet import grid
 
 
 def box_mesh(nx=4, ny=2, nz=2, size=(0.2, 0.05, 0.05)):
@@ -267,6 +269,17 @@ def test_derived_quantities():
     rot = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
     rigid = Result(res.points, res.tets, res.surface, np.stack([res.points, res.points @ rot.T + 1.0]), 0.1)
     np.testing.assert_allclose(vertex_strain(rigid), 0.0, atol=1e-12)
+
+    # A sheet (no tets) takes its triangles' in-plane Green strain: stretched 2 % along x and
+    # -1 % along y, |E|_F = |((1.02^2 - 1)/2, (0.99^2 - 1)/2)| on every vertex; 0 when moved rigidly.
+    sheet = grid(0.3, 0.2, (6, 4))
+    stretched = sheet.points * [1.02, 0.99, 1.0]
+    frames = np.stack([sheet.points, stretched, sheet.points @ rot.T + 1.0])
+    strain = vertex_strain(Result(sheet.points, sheet.tets, sheet.surface, frames, 0.1))
+    np.testing.assert_allclose(strain[1], np.hypot(0.5 * (1.02**2 - 1), 0.5 * (0.99**2 - 1)), rtol=1e-12)
+    np.testing.assert_allclose(strain[[0, 2]], 0.0, atol=1e-12)
+    # A solid's surface triangles do not count: its vertices are in tets.
+    assert VertexStrain(res.points, res.tets, res.surface).triangles.shape == (0, 3)
 
     assert color_options(res) == ["strain", "displacement", "activation", "pressure"]
     act = vertex_activation(res)
