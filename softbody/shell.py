@@ -22,10 +22,12 @@ SVD, finite with finite derivatives at rest (``C = I``). For a stretch without s
 in the Biot strain ``S - I``, so uniform stretches pass the patch test to round-off; small
 strains of any kind agree with plane-stress linear elasticity to first order.
 
-Each triangle adds the ``3 x 3`` block ``A t (2 mu + 2 lam*) G G^T`` (``G`` its shape
+Each triangle adds the ``3 x 3`` block ``A t (2 mu + 2 w lam*) G G^T`` (``G`` its shape
 gradients) to the prefactored PD matrix: ``2 mu`` for the rotation term, and ``2 lam*``
 bounds the area term's rank-one Hessian (``|R|^2 = 2``), as ``3 lambda`` does for a tet's
-volume term.
+volume term, and takes the same scale ``w`` (the scene's ``model.step.volume_weight``:
+L-BFGS in plain coordinates learns the rest; measured on a 1 m cloth falling from two
+corners, 543-1195 iterations a step at w = 0.2 against 662-2033 at 1).
 
 An areal density gives each vertex a third of its triangles' mass (inertia and weight).
 
@@ -209,12 +211,16 @@ class Membrane(VertexTerm):
                               areal_density=jnp.asarray(self.areal_density))
 
     def prepare(self, model, params: MembraneParams, dminv, volume) -> tuple:
-        """``(mu t A (m,), lam* t A (m,), rho_A A (m,))``: the weights of the two terms and
-        the mass per triangle."""
+        """``(mu t A (m,), lam* t A (m,), rho_A A (m,), w)``: the weights of the two terms,
+        the mass per triangle, and the scale ``w`` of the area term's blocks in the PD matrix
+        (the scene's volume-term scale, ``model.step.volume_weight``: 0.2 for L-BFGS in
+        plain coordinates, 1 where contact or a skeleton needs the matrix to bound the
+        Hessian; 1 without a model)."""
         mu = params.E / (2.0 * (1.0 + params.nu))
         lam = params.E * params.nu / (1.0 - params.nu**2)
         area = jnp.asarray(self.area)
-        return mu * area * params.thickness, lam * area * params.thickness, params.areal_density * area
+        weight = 1.0 if model is None else model.step.volume_weight
+        return mu * area * params.thickness, lam * area * params.thickness, params.areal_density * area, weight
 
     def mass(self, prep):
         """A third of each triangle's mass on each of its vertices (``None`` without density)."""
@@ -226,12 +232,12 @@ class Membrane(VertexTerm):
         return self.triangles
 
     def blocks(self, prep) -> Array:
-        mu_at, lam_at, _ = prep
+        mu_at, lam_at, _, weight = prep
         g = jnp.asarray(self.gradients)
-        return (2.0 * mu_at + 2.0 * lam_at)[:, None, None] * jnp.einsum("mai,mbi->mab", g, g)
+        return (2.0 * mu_at + 2.0 * weight * lam_at)[:, None, None] * jnp.einsum("mai,mbi->mab", g, g)
 
     def energy_and_gradient(self, x, prep, activation):
-        mu_at, lam_at, _ = prep
+        mu_at, lam_at = prep[:2]
         g = jnp.asarray(self.gradients)
         tri = jnp.asarray(self.triangles)
 
