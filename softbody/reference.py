@@ -8,9 +8,9 @@
   thing. The Hessian is the true one, assembled sparsely from per-tet ``12 x 12`` blocks
   (forward-mode derivatives of the per-tet gradient, the rotation's derivative included)
   plus the lumped inertia and mass damping on the diagonal; vertex terms (cavity
-  pressure, sheets) and dissipation terms (drag) add their Hessian densely. Each Newton system is solved on the host with
-  SciPy's sparse LU over the free degrees of freedom, followed by a backtracking line
-  search.
+  pressure, sheets) and dissipation terms (drag) add their Hessian densely. Each Newton
+  system is solved on the host with SciPy's sparse LU over the free degrees of freedom,
+  followed by a backtracking line search.
 * :func:`diffrax_rollout`: the semi-discrete FEM ODE of the same model,
   ``M x'' = -dE/dx - C(x) x' + M g + f`` on the free vertices, integrated with an adaptive
   (by default stiff, implicit) diffrax solver to tight tolerances. The damping forces are

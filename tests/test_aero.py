@@ -17,7 +17,7 @@ from softbody.aero import Drag
 from softbody.explicit import SymplecticEuler, explicit_rollout
 from softbody.gradients import ImplicitForward, central_difference, check_grad, random_directions
 from softbody.model import Options, SceneError, State, build, initial_state
-from softbody.reference import diffrax_rollout
+from softbody.reference import diffrax_rollout, newton_step
 from softbody.shell import shell_body
 from softbody.simulate import rollout
 
@@ -104,6 +104,19 @@ def test_the_explicit_integrator_takes_the_drag_at_the_steps_start():
     a = -(RHO * abs(u[2]) * u[2] * np.array([0, 0, 1.0]) + friction * np.array([u[0], u[1], 0.0])) / RHO_A
     np.testing.assert_allclose(np.asarray(traj.v[1]), np.broadcast_to(v0 + h * a, state.v.shape), rtol=1e-12,
                                atol=1e-12)
+
+
+def test_the_newton_reference_steps_a_hanging_sheet_in_a_wind_as_the_simulator_does():
+    """Two steps of the sheet hung by two corners in an oblique wind: Newton's method on the
+    same objective (the drag's Hessian in its matrix) converges in a few iterations to the
+    PD solver's positions."""
+    model, params = _hanging(None)
+    traj = rollout(model, params, initial_state(model, params), n_steps=2)
+    state = initial_state(model, params)
+    for k in range(2):
+        state, iterations = newton_step(model, params, state, tol=1e-12)
+        assert iterations <= 8
+        np.testing.assert_allclose(np.asarray(state.x), np.asarray(traj.x[k + 1]), rtol=0, atol=1e-10)
 
 
 def _hanging(adjoint):
