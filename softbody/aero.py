@@ -56,8 +56,9 @@ class Drag(DissipationTerm):
     """Air drag and wind on triangles of a body's vertices (the module docstring's force).
 
     Build it with :meth:`on`; give it to the body, ``SoftBody(mesh, material,
-    actuators=[drag])`` or ``shell_body(..., actuators=...)``'s body (its indices then follow
-    the body into the scene), or to ``build(..., terms=[drag])`` on a scene's indices.
+    actuators=[drag])`` (its indices then follow the body into the scene), or to
+    ``build(..., terms=[drag])`` on a scene's indices (a :func:`~softbody.shell.shell_body`
+    alone: ``build(sheet, terms=[Drag.on(mesh, "sheet", wind=...)])``).
 
     Attributes:
         triangles: ``(m, 3)`` vertex indices; their order sets the normal ``n`` (either side
