@@ -587,7 +587,7 @@ class VertexStrain:
         dm = self._edges(points[None])[0]
         vol = np.abs(np.linalg.det(dm)) / 6.0
         self.dm_inv = np.linalg.inv(dm)
-        n, t = len(points), len(self.tets)
+        n = len(points)
         self.average = _averaging(self.tets, vol, n)
         in_tet = np.zeros(n, bool)
         in_tet[self.tets.ravel()] = True
