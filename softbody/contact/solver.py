@@ -437,10 +437,8 @@ class Contact:
             return jnp.concatenate([x, jnp.zeros((extra + m, 3), x.dtype) if forces is None else forces])
 
         labels = self._labels(problem.blocks, parts.owners, pairs)
-        groups = None
-        if m and not self.blocks and problem.bodies is not None:
-            groups = _touching_groups(start, problem.bodies, parts.owners)
-        return ContactMap(apply, weight, labels, lift, parts, pairs, groups)
+        joined = (start, problem.bodies, parts.owners) if m and not self.blocks and problem.bodies is not None else None
+        return ContactMap(apply, weight, labels, lift, parts, pairs, joined)
 
     def _law(self, problem: StepProblem):
         """The per-vertex contact step on some vertices, as :class:`~softbody.contact.active_set.ActiveSet` takes it."""
@@ -676,8 +674,10 @@ class ContactMap(NamedTuple):
             ``(e + m, 3)`` (zero where ``None``).
         parts: the coordinates' :class:`~softbody._interfaces.ContactSweep`.
         pairs: the step's pair rows (their selection).
-        groups: ``(labels, count)``, the forward iteration's Anderson blocks found from the
-            step's pair rows (:func:`_touching_groups`), or ``None``: ``labels``.
+        joined: what :func:`_touching_groups` finds the forward iteration's Anderson blocks
+            from (the pair rows' frame at the step's start, each vertex's body, the extra
+            rows' owners), or ``None``: ``labels``. Read only by :attr:`mixing`, so the maps
+            built for the implicit derivative do not find them.
     """
 
     apply: Callable
@@ -686,13 +686,13 @@ class ContactMap(NamedTuple):
     lift: Callable
     parts: ContactSweep
     pairs: _Pairs = _Pairs(())
-    groups: tuple | None = None
+    joined: tuple | None = None
 
     @property
     def mixing(self) -> dict:
         """The forward iteration's Anderson blocks, as :func:`softbody.contact.anderson.iterate`
         takes them (the implicit derivative's linear solve keeps the static :attr:`labels`)."""
-        if self.groups is None:
+        if self.joined is None:
             return {"labels": self.labels}
-        labels, count = self.groups
+        labels, count = _touching_groups(*self.joined)
         return {"labels": labels, "blocks": count}
