@@ -50,6 +50,7 @@ from softbody.io import (
     vertex_values,
 )
 from softbody.meshing.mesh import boundary_faces
+from softbody.meshing.surface import open_edges
 
 #: Colour levels of continuous colourings.
 LEVELS = 32
@@ -158,13 +159,6 @@ class Coloring:
         return cls(levels[None], np.array(colors), _swatches_html(names + ["other"], colors))
 
 
-def _is_open(faces: np.ndarray) -> bool:
-    """Whether a triangle surface ``(f, 3)`` has boundary edges (edges of one triangle only),
-    as a sheet has and a closed body surface has not."""
-    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
-    return bool(np.any(np.unique(edges, axis=0, return_counts=True)[1] == 1))
-
-
 class Body:
     """The deformable surface in a viser scene, one mesh per colour level.
 
@@ -179,7 +173,7 @@ class Body:
 
     def __init__(self, server: viser.ViserServer, faces: np.ndarray, name: str = "/body"):
         self.server, self.faces, self.name = server, np.asarray(faces), name
-        self.side = "double" if len(self.faces) and _is_open(self.faces) else "front"
+        self.side = "double" if len(self.faces) and len(open_edges(self.faces)) else "front"  # a sheet
         self.handles: dict[int, Any] = {}
         self.colors: dict[int, tuple[int, int, int]] = {}
         self.opacity: float | None = None

@@ -10,8 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from softbody.meshing import TetMesh
-from test_shell import _sheet
+from softbody.meshing import sheet
 
 from softbody.aero import Drag
 from softbody.explicit import SymplecticEuler, explicit_rollout
@@ -24,18 +23,16 @@ from softbody.simulate import rollout
 jax.config.update("jax_enable_x64", True)
 
 RHO_A, RHO = 0.1, 1.2  # a light fabric (kg/m^2) in air (kg/m^3)
-FLAT = np.eye(3)  # the sheet in the x-y plane: normal z
 
 
 def _scene(options, *, wind=(0.0, 0.0, 0.0), friction=0.0, gravity=True, fixed=None, n=4):
-    """A free (or ``fixed``) 0.1 m square fabric sheet in the x-y plane with drag on its
-    triangles."""
-    points, tris, _ = _sheet(FLAT, n, n, (0.1, 0.1), offset=(0.0, 0.0, 0.0))
-    mesh = TetMesh(points, np.zeros((0, 4), np.int32), tris.astype(np.int32), {})
-    body = shell_body(mesh, E=1e5, nu=0.3, thickness=1e-3, areal_density=RHO_A, fixed=fixed, triangles=tris)
-    drag = Drag.on(mesh, tris, density=RHO, friction=friction, wind=wind)
+    """A free (or ``fixed``) 0.1 m square fabric sheet in the x-y plane (normal z) with drag
+    on its triangles: ``(model, params)``."""
+    mesh = sheet.grid(0.1, 0.1, (n, n))
+    body = shell_body(mesh, E=1e5, nu=0.3, thickness=1e-3, areal_density=RHO_A, fixed=fixed)
+    drag = Drag.on(mesh, "sheet", density=RHO, friction=friction, wind=wind)
     options = dataclasses.replace(options, gravity=options.gravity if gravity else (0.0, 0.0, 0.0))
-    return mesh, build(body, terms=[drag], options=options)
+    return build(body, terms=[drag], options=options)
 
 
 def test_a_flat_sheet_falls_at_its_terminal_speed():
@@ -43,7 +40,7 @@ def test_a_flat_sheet_falls_at_its_terminal_speed():
     step's steady state balances weight and drag exactly, and the gap closes by a factor
     ``1 + 2 g h / v_t`` a step (1e-13 after 150 steps); what is left is the solves'
     tolerance (1e-10 of ``|M s / h^2|``: ~1e-8 m/s here). The sheet stays flat."""
-    _, (model, params) = _scene(Options(dt=0.01, tol=1e-10, atol=0.0))
+    model, params = _scene(Options(dt=0.01, tol=1e-10, atol=0.0))
     assert model.features == {"velocity forces"}
     traj = rollout(model, params, initial_state(model, params), n_steps=150)
     v_t = np.sqrt(RHO_A * 9.81 / RHO)
@@ -73,7 +70,7 @@ def test_an_oblique_wind_moves_a_free_sheet_by_the_implicit_euler_recurrences_to
     errors = []
     for h in (0.01, 0.005):
         steps = round(t_end / h)
-        _, (model, params) = _scene(Options(dt=h, tol=1e-12, atol=0.0), wind=tuple(wind), friction=friction,
+        model, params = _scene(Options(dt=h, tol=1e-12, atol=0.0), wind=tuple(wind), friction=friction,
                                     gravity=False)
         traj = rollout(model, params, initial_state(model, params), n_steps=steps)
         v = np.asarray(traj.v)  # (steps + 1, n, 3): uniform, the sheet translates
@@ -94,7 +91,7 @@ def test_the_explicit_integrator_takes_the_drag_at_the_steps_start():
     ``a = -rho |u_n| u_n n / rho_A - c u_t / rho_A``."""
     h, wind, friction = 1e-4, np.array([1.0, -2.0, 5.0]), 0.03
     options = Options(dt=h, integrator=SymplecticEuler(jnp.asarray(h)))
-    _, (model, params) = _scene(options, wind=tuple(wind), friction=friction, gravity=False)
+    model, params = _scene(options, wind=tuple(wind), friction=friction, gravity=False)
     state = initial_state(model, params)
     v0 = np.array([0.2, 0.1, -0.5])
     state = State(x=state.x, v=jnp.broadcast_to(jnp.asarray(v0), state.v.shape), rot=state.rot, t=state.t,
@@ -121,11 +118,11 @@ def test_the_newton_reference_steps_a_hanging_sheet_in_a_wind_as_the_simulator_d
 
 def _hanging(adjoint):
     """The sheet hung from two corners, gravity and an oblique wind."""
-    points, _, _ = _sheet(FLAT, 4, 4, (0.1, 0.1), offset=(0.0, 0.0, 0.0))
-    corners = np.flatnonzero(np.isclose(points[:, 1], 0.1) & (np.isclose(points[:, 0], 0) | np.isclose(points[:, 0],
-                                                                                                          0.1)))
+    def corners(p):
+        return np.isclose(p[:, 1], 0.1) & (np.isclose(p[:, 0], 0) | np.isclose(p[:, 0], 0.1))
+
     return _scene(Options(dt=0.01, tol=1e-12, atol=0.0, max_iter=3000, adjoint=adjoint), wind=(1.0, 0.5, 3.0),
-                  friction=0.2, fixed=corners)[1]
+                  friction=0.2, fixed=corners)
 
 
 @pytest.mark.parametrize("adjoint", [None, pytest.param(ImplicitForward(), marks=pytest.mark.slow)],
@@ -164,13 +161,14 @@ def test_gradients_with_respect_to_the_air_match_central_differences(adjoint):
 
 
 def test_bad_drag_is_refused_and_diffrax_refuses_velocity_forces(no_compiling):
-    points, tris, _ = _sheet(FLAT, 2, 2, (0.1, 0.1))
+    mesh = sheet.grid(0.1, 0.1, (2, 2))
+    points, tris = mesh.points, mesh.surface
     for message, kwargs in {"density >= 0": dict(density=-1.0), "friction >= 0": dict(friction=np.nan),
                             "three finite numbers": dict(wind=(1.0, 2.0)),
                             "names no triangles": dict(triangles=np.zeros((0, 3), int)),
                             "must lie in": dict(triangles=np.array([[0, 1, 10**6]]))}.items():
         with pytest.raises(SceneError, match=message):
             Drag.on(points, kwargs.pop("triangles", tris), **kwargs)
-    _, (model, params) = _scene(Options(dt=0.01))
+    model, params = _scene(Options(dt=0.01))
     with pytest.raises(SceneError, match="diffrax_rollout .*velocity forces"):
         diffrax_rollout(model, params, initial_state(model, params), 0.01, [0.01])

@@ -348,11 +348,9 @@ def test_the_unrolled_gradient_of_a_hanging_sheet_matches_central_differences():
     """d(a loss after 5 steps)/d(log bending E) of a 0.1 m fabric square hung by two corners,
     through ``Unrolled()``, against Richardson central differences (eps 1e-2; the default
     implicit adjoint gives 2.2e-7): relative error <= 1e-6."""
-    points, tris, _ = _sheet(np.eye(3), 4, 4, (0.1, 0.1), offset=(0.0, 0.0, 0.0))
-    corners = np.flatnonzero(np.isclose(points[:, 1], 0.1) & (np.isclose(points[:, 0], 0) | np.isclose(points[:, 0],
-                                                                                                          0.1)))
-    mesh = TetMesh(points, np.zeros((0, 4), np.int32), tris.astype(np.int32), {})
-    body = shell_body(mesh, E=1e5, nu=0.3, thickness=1e-3, areal_density=0.1, fixed=corners, triangles=tris)
+    mesh = sheet.grid(0.1, 0.1, (4, 4))
+    corners = np.isclose(mesh.points[:, 1], 0.1) & (np.isclose(mesh.points[:, 0], 0) | np.isclose(mesh.points[:, 0], 0.1))
+    body = shell_body(mesh, E=1e5, nu=0.3, thickness=1e-3, areal_density=0.1, fixed=np.flatnonzero(corners))
     model, params = build(body, options=Options(dt=0.01, tol=1e-12, atol=0.0, max_iter=3000, adjoint=Unrolled()))
     state0 = initial_state(model, params)
 
