@@ -81,6 +81,11 @@ def training_problem():
     return mesh, sc.CoDesignProblem(model, params, distance, grid, design)
 
 
+def initial_gait(grid, seed: int):
+    """The random gait every run starts from: knot values ``N(0, 0.5^2)`` of the seed."""
+    return jnp.asarray(np.random.default_rng(seed).normal(scale=0.5, size=grid.shape))
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--out", required=True, type=Path, help="output folder")
@@ -97,7 +102,7 @@ def main(argv=None):
     n_tets = mesh.n_tets
     long_grid = sc.ControlGrid(EVAL_PERIODS * PERIOD, model.n_channels, N_KNOTS, period=PERIOD, upper=A_MAX)
     evaluation = sc.CoDesignProblem(model, params, distance, long_grid, design)
-    gait0 = jnp.asarray(np.random.default_rng(args.seed).normal(scale=0.5, size=grid.shape))
+    gait0 = initial_gait(grid, args.seed)
 
     # One optimiser object per role, so that every frozen-layout run reuses one compiled iteration.
     frozen = optax.multi_transform({"gait": optax.adam(LEARNING_RATE), "design": optax.set_to_zero()},

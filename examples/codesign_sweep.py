@@ -40,15 +40,14 @@ from softbody import progress
 from softbody.io import check_overwrite, write_metrics
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from codesign_crawler import training_problem  # noqa: E402
+from codesign_crawler import initial_gait, training_problem  # noqa: E402
 
 SIGMA0 = 0.3
 
 
 def start(problem, seed: int):
     """The search's start: the uniform layout and the random gait of ``codesign_crawler.py``."""
-    gait0 = jnp.asarray(np.random.default_rng(seed).normal(scale=0.5, size=problem.grid.shape))
-    return {"controls": gait0, "weights": (jnp.ones(problem.model.mesh.n_tets),)}
+    return {"controls": initial_gait(problem.grid, seed), "weights": (jnp.ones(problem.model.mesh.n_tets),)}
 
 
 def objective(problem, theta):
