@@ -27,7 +27,8 @@ contact solver's settings, ``Options(contact=...)``), :class:`Implicit`, :class:
 ...), ``sb.contact`` (the contact solver), ``sb.skeleton``, ``sb.control``, ``sb.linsolve``,
 ``sb.io``.
 
-**Float64.** Importing ``softbody`` turns on JAX's 64-bit mode (``jax_enable_x64``): the
+**Float64.** Importing ``softbody`` turns on JAX's 64-bit mode (``jax_enable_x64``; at once if
+JAX is imported, otherwise as JAX is imported: ``import softbody`` itself stays quick): the
 simulator's tolerances and the finite-difference gradient checks assume float64, and arrays
 you pass in float32 are promoted. To keep JAX's default 32-bit mode, set the environment
 variable ``SOFTBODY_FLOAT64=0`` before importing (then softbody leaves ``jax_enable_x64``
@@ -44,15 +45,51 @@ programs they compiled before; ``SOFTBODY_COMPILATION_CACHE=0`` turns it off, an
 """
 
 import importlib
+import importlib.abc
+import importlib.util
 import os
+import sys
 
-import jax
 
-from softbody import cache as _cache
+def _configure_jax() -> None:
+    """Float64 (unless ``SOFTBODY_FLOAT64=0``) and the compilation cache; runs once JAX is imported."""
+    import jax
 
-if os.environ.get("SOFTBODY_FLOAT64", "1").strip().lower() not in ("0", "false", "no", "off"):
-    jax.config.update("jax_enable_x64", True)
-_cache.setup()
+    from softbody import cache
+
+    if os.environ.get("SOFTBODY_FLOAT64", "1").strip().lower() not in ("0", "false", "no", "off"):
+        jax.config.update("jax_enable_x64", True)
+    cache.setup()
+
+
+class _WhenJaxIsImported(importlib.abc.MetaPathFinder):
+    """Runs :func:`_configure_jax` right after the first ``import jax`` of the process.
+
+    ``import softbody`` does not import JAX itself (1.5-9 s: the command line speaks before
+    it), yet no JAX array can be made before float64 and the cache are set up.
+    """
+
+    def find_spec(self, name, path=None, target=None):
+        if name != "jax":
+            return None
+        sys.meta_path.remove(self)
+        spec = importlib.util.find_spec(name)
+        if spec is None or spec.loader is None:
+            return spec
+        load = spec.loader.exec_module
+
+        def load_and_configure(module):
+            load(module)
+            _configure_jax()
+
+        spec.loader.exec_module = load_and_configure
+        return spec
+
+
+if "jax" in sys.modules:
+    _configure_jax()
+elif not any(isinstance(finder, _WhenJaxIsImported) for finder in sys.meta_path):
+    sys.meta_path.insert(0, _WhenJaxIsImported())
 
 __version__ = "0.1.0"
 

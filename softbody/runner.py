@@ -204,12 +204,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run ``softbody run``; returns the exit status (0 ok, 1 bad input or a failed simulation)."""
     from softbody import progress
+
+    out: Path = args.output
+    progress.say(f"softbody run {args.mesh}: {args.steps} steps of {args.dt:g} s -> {out}")
     from softbody.io import check_overwrite
     from softbody.meshing import MeshError
     from softbody.simulate import SimulationError
 
-    out: Path = args.output
-    progress.say(f"softbody run {args.mesh}: {args.steps} steps of {args.dt:g} s -> {out}")
     try:
         if out.suffix != ".npz":
             raise RunError(f"-o {out}: result files end in .npz")
