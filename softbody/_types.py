@@ -127,6 +127,14 @@ class Options:
         if len(self.gravity) != 3 or not np.all(np.isfinite(self.gravity)):
             raise SceneError(f"Options.gravity must be 3 finite numbers, got {self.gravity!r}")
 
+    @property
+    def adjoint_tol(self) -> float:
+        """The default relative tolerance of a step's adjoint solve: :attr:`tol` clipped to
+        [1e-10, 1e-5]. The step's solution is only ``tol`` accurate, so a tighter adjoint buys
+        little; above 1e-5 the adjoint's own error takes over (measurements:
+        :class:`~softbody.gradients.Implicit`, :class:`~softbody.contact.Contact`)."""
+        return min(max(self.tol, 1e-10), 1e-5)
+
 
 class Params(eqx.Module):
     """Differentiable parameters (a pytree).

@@ -193,7 +193,7 @@ class Implicit(Adjoint):
             free = jnp.asarray(model.free_mask)
             system = _StepSystem.at(model, prep, x_n, v_n, q_n, activation, force, xs)
             q_n = system.q_n
-            tol = self.tol if self.tol is not None else min(max(model.options.tol, 1e-10), 1e-5)
+            tol = self.tol if self.tol is not None else model.options.adjoint_tol
             lam = system.push(_pcg(system.hvp, system.precondition, system.pull(xbar), tol, self.max_iter))
             ct_prep, ct_xn, ct_vn, ct_qn, ct_a, ct_f = step_gradient_vjp(
                 model, prep, x_n, v_n, q_n, activation, force, xs, system.qs, -lam)
@@ -239,7 +239,7 @@ class ImplicitForward(Implicit):
             args = (prep, x_n, v_n, q_n, activation, force)
             dargs = tangents[:4] + tangents[5:]
             _, dg = jax.jvp(lambda *a: system.residual(sol.x, *a), args, dargs)
-            tol = self.tol if self.tol is not None else min(max(model.options.tol, 1e-10), 1e-5)
+            tol = self.tol if self.tol is not None else model.options.adjoint_tol
             # custom_linear_solve (H is symmetric) keeps the rule transposable for reverse mode.
             d = jax.lax.custom_linear_solve(
                 system.hvp, system.pull(dg), lambda hvp, b: _pcg(hvp, system.precondition, b, tol, self.max_iter),

@@ -161,6 +161,8 @@ def _compose(options: Options, rig: Rig | None, contact_rows: bool, parts: tuple
         raise SceneError(f"Options.adjoint must be Implicit(), ImplicitForward() or Unrolled(), got "
                          f"{options.adjoint!r}")
     contact = (options.contact or Contact()) if contact_rows else None
+    if contact is not None and contact.adjoint_tol is None:
+        contact = dataclasses.replace(contact, adjoint_tol=options.adjoint_tol)
     n = parts[-1].vertices[1]
     if contact is not None and contact.blocks and contact.blocks[-1][1] != n:
         raise SceneError(f"Contact.blocks must end at the scene's {n} vertices, got {contact.blocks!r}; leave it at "

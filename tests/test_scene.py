@@ -32,12 +32,16 @@ def test_build_resolves_defaults_once():
     assert isinstance(model.options.adjoint, Implicit) and model.options.contact is None and model.rig is None
     assert model.options.linear_solver is not None and model.linear_solver is model.options.linear_solver
     contact, _ = build(SoftBody(MESH, Material()), obstacles=[Plane()])
-    assert contact.step == Step(Vertices(), LBFGS(), Contact()) and contact.options.contact is contact.step.contact
+    # the contact adjoint's tolerance follows the forward one (Options.tol = 1e-4 -> 1e-5)
+    assert contact.step == Step(Vertices(), LBFGS(), Contact(adjoint_tol=1e-5))
+    assert contact.options.contact is contact.step.contact
+    tight, _ = build(SoftBody(MESH, Material()), obstacles=[Plane()], options=Options(tol=1e-12))
+    assert tight.step.contact.adjoint_tol == 1e-10
     chosen = Options(solver=LocalGlobal(), adjoint=Unrolled(), linear_solver=DenseCholesky())
     model, _ = _build(options=chosen)
     assert model.options == chosen  # what the user chose is kept as given
     assert model.step == Step(Vertices(), LocalGlobal(), None)
-    mine = Contact(splitting=Diagonal(), history=5)
+    mine = Contact(splitting=Diagonal(), history=5, adjoint_tol=1e-7)
     model, _ = build(SoftBody(MESH, Material()), obstacles=[Plane()], options=Options(contact=mine))
     assert model.step.contact is mine and model.options.contact is mine
 
