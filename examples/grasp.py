@@ -171,6 +171,17 @@ def save_result(model, params, traj, controls, path, metrics):
     return result.save(path, force=True)
 
 
+def rollout_metrics(model, traj, obj_v, tips) -> dict:
+    """:func:`grasp_metrics` of ``traj`` and its steps' convergence: ``all_converged``,
+    ``failed_steps``, ``result_codes``, ``iterations_median``, ``iterations_max``, ``vertices``."""
+    it, res = np.asarray(traj.info.iterations), np.asarray(traj.info.result)
+    m = grasp_metrics(traj.x, obj_v, tips)
+    m.update(all_converged=bool((res == 0).all()), failed_steps=np.flatnonzero(res != 0).tolist(),
+             result_codes=sorted(set(res.tolist())), iterations_median=float(np.median(it)),
+             iterations_max=int(it.max()), vertices=model.n_vertices)
+    return m
+
+
 def hand_set(obj, pressure, out):
     """The rollout at a hand-set pressure ramp; returns its metrics and the built scene."""
     with progress.task(f"{obj}: building the scene"):
@@ -180,12 +191,8 @@ def hand_set(obj, pressure, out):
     with progress.task(f"{obj}: simulating {N_STEPS} steps at {pressure / 1e3:.0f} kPa (compiles)"):
         traj = rollout(model, params, initial_state(model, params), controls, throw=False)
     wall = time.perf_counter() - t0
-    it, res = np.asarray(traj.info.iterations), np.asarray(traj.info.result)
-    m = grasp_metrics(traj.x, obj_v, tips)
-    m.update(pressure_pa=pressure, all_converged=bool((res == 0).all()),
-             failed_steps=np.flatnonzero(res != 0).tolist(), result_codes=sorted(set(res.tolist())),
-             iterations_median=float(np.median(it)), iterations_max=int(it.max()), rollout_wall_time_s=wall,
-             vertices=model.n_vertices)
+    m = rollout_metrics(model, traj, obj_v, tips)
+    m.update(pressure_pa=pressure, rollout_wall_time_s=wall)
     print(f"{obj}: lift {m['lift_m'] * 1e3:.1f} mm, slip {m['slip_m'] * 1e3:.3f} mm, "
           f"all steps converged: {m['all_converged']}, iterations median {m['iterations_median']:.0f} "
           f"max {m['iterations_max']}, {wall:.0f} s", flush=True)
@@ -305,25 +312,21 @@ def optimise(out: Path, budget: int, cmaes_budget: int, seed: int, start_kpa: fl
     with progress.task("soft_cube: building the scene"):
         problem = GraspProblem("soft_cube")
     grad = gradient_run(problem, budget, start_kpa) if budget > 0 else None
-    if grad is not None:
-        best = grad["lifted_at"] - 1 if grad["lifted_at"] else int(np.argmin(grad["loss"]))
-        theta = np.asarray(grad["theta_kpa"][best])
-        progress.say(f"gradient: {'lifted after ' + str(grad['lifted_at']) if grad['lifted_at'] else 'not lifted in'} "
-                     f"{len(grad['loss'])} simulations, {grad['wall_time_s']:.0f} s")
     cma = cmaes_run(problem, cmaes_budget, seed, start_kpa) if cmaes_budget > 0 else None
-    if cma is not None:
-        progress.say(f"CMA-ES: {'lifted after ' + str(cma['lifted_at']) if cma['lifted_at'] else 'not lifted in'} "
-                     f"{len(cma['loss'])} simulations, {cma['wall_time_s']:.0f} s")
-        if grad is None:  # CMA-ES alone: its best schedule
-            theta = np.asarray(cma["best_theta_kpa"])
+    for name, history in (("gradient", grad), ("CMA-ES", cma)):
+        if history is not None:
+            outcome = f"lifted after {history['lifted_at']}" if history["lifted_at"] else "not lifted in"
+            progress.say(f"{name}: {outcome} {len(history['loss'])} simulations, {history['wall_time_s']:.0f} s")
+    if grad is not None:  # the gradient method's lifting (else best) schedule
+        theta = np.asarray(grad["theta_kpa"][grad["lifted_at"] - 1 if grad["lifted_at"] else int(np.argmin(grad["loss"]))])
+    else:  # CMA-ES alone: its best schedule
+        theta = np.asarray(cma["best_theta_kpa"])
     controls = problem.controls(jnp.asarray(theta))
     traj = rollout(problem.model, problem.params, problem.state, controls, throw=False)
-    res, it = np.asarray(traj.info.result), np.asarray(traj.info.iterations)
-    m = grasp_metrics(traj.x, problem.obj_v, problem.tips)
+    m = rollout_metrics(problem.model, traj, problem.obj_v, problem.tips)
     m.update(simulations=grad["lifted_at"] if grad else None, cmaes_simulations_to_lift=cma["lifted_at"] if cma else None,
              cmaes_budget=cmaes_budget, gradient_budget=budget, start_kpa=start_kpa, knots_s=list(KNOTS),
-             theta_kpa=theta.tolist(), all_converged=bool((res == 0).all()), iterations_median=float(np.median(it)),
-             iterations_max=int(it.max()), vertices=problem.model.n_vertices, gradient=grad, cmaes=cma)
+             theta_kpa=theta.tolist(), gradient=grad, cmaes=cma)
     save_result(problem.model, problem.params, traj, np.asarray(controls), out / "soft_cube.npz", m)
     _loss_plot(out, grad, cma, start_kpa)
     return m
