@@ -27,6 +27,11 @@ no top-level ``control`` package, so nothing collides with python-control.
   observations :class:`JointAngles`, :class:`Positions`, :class:`Concat`, rewards
   :class:`Progress`, :class:`Height`, :class:`ActionPenalty`) and exact one-step Jacobians
   by forward-mode implicit differentiation (:func:`step_jacobian`, :func:`contact_changes`).
+* :mod:`~softbody.control.rl`: reinforcement learning with those Jacobians: one SAC agent
+  (:class:`SAC`, :class:`SACConfig`) with sample enhancement (virtual samples from
+  ``ds'/da``, ``dr/da``) and policy enhancement (the actor's action gradient through the
+  one-step model) as options, and rejax's PPO as the baseline (:func:`ppo`;
+  ``pip install softbody[rl]``).
 """
 
 from .baselines import CMAResult, cmaes
@@ -37,9 +42,10 @@ from .losses import (Effort, ForwardDistance, Loss, Scaled, Smoothness, Sum, Tar
 from .optimize import OptimizeResult, minimize
 from .policy import MLPPolicy, Observations, PolicyResult, policy_rollout, train_policy
 from .sysid import ESTIMABLE, Observation, SysIdProblem, SysIdResult, identify, synthesize
-from . import env, sweep
+from . import env, rl, sweep
 from .env import (ActionMap, ActionPenalty, Concat, Env, EnvState, Height, JointAngles, Positions, Progress,
                   ResetNoise, Reward, StepJacobian, Transition, contact_changes, step_jacobian)
+from .rl import SAC, SACConfig, SACState, evaluate_policy, model_action_gradient, ppo, virtual_samples
 from .sweep import Pool as SweepPool, SweepError, SweepResult, population_evaluator, run_sweep
 from .trajopt import ControlGrid, ControlProblem, TrajOptResult, optimize_controls
 
@@ -55,5 +61,6 @@ __all__ = [
     "CMAResult", "cmaes",
     "env", "Env", "EnvState", "ActionMap", "Transition", "Reward", "Progress", "Height", "ActionPenalty",
     "JointAngles", "Positions", "Concat", "ResetNoise", "StepJacobian", "step_jacobian", "contact_changes",
+    "rl", "SAC", "SACConfig", "SACState", "ppo", "virtual_samples", "model_action_gradient", "evaluate_policy",
     "sweep", "run_sweep", "SweepPool", "SweepError", "SweepResult", "population_evaluator",
 ]

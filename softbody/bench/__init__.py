@@ -35,6 +35,7 @@ BENCHMARKS = {
     "contact-pairs": "bodies touching bodies: a cube resting on a slab, a block sliding to rest (stopping distance against v0^2/(2 g mu_k) and a plane obstacle), a stack of three boxes, iterations per step, share of choosing the rows",
     "many-bodies": "N = 1, 4, 16, 64, 256 soft cubes dropped onto the ground and onto each other under one Touch: time, memory and iterations per step against N, its fitted exponent, broad-phase share",
     "impact-zone": "backward of the collision-response QP: QR form against the full KKT solve at 16x16, 32x32, 64x64 cloth sizes",
+    "rl-pendulum": "SAC, SAC + sample enhancement, SAC + policy enhancement (one-step Jacobians) and rejax's PPO on an N-link pendulum: best relative reward against training samples, samples to reach SAC's final reward",
     "locking": "static deflection of a silicone cantilever (nu = 0.3 to 0.499) per element (linear tets, nodally averaged volume) against scikit-fem's P2 / Taylor-Hood reference; iterations",
 }
 
