@@ -254,6 +254,9 @@ def test_contact_rejects_bad_settings_and_mismatched_parameters():
         Contact(history=-1)
     with pytest.raises(ValueError, match="warm_start must be True or False"):
         Contact(warm_start=1)
+    for floor in (-0.1, float("nan")):
+        with pytest.raises(ValueError, match="rigid_floor must be a number >= 0"):
+            Contact(rigid_floor=floor)
     with pytest.raises(ValueError, match="scale"):
         ScaledDiagonal(0.0)
     for blocks in (((1, 4),), ((0, 2), (3, 4)), ((0, 0),), ((0, 2, 4),)):

@@ -397,6 +397,36 @@ def test_rigid_box_rests_on_soft_slab():
     assert np.asarray(traj.info.iterations)[15:].max() <= 10
 
 
+@pytest.mark.slow
+def test_a_soft_block_settles_on_a_light_rigid_box_in_few_iterations_and_the_floor_keeps_the_solution():
+    """A soft block (4 g) set one contact thickness above a light rigid box (0.8 g) that rests
+    on the ground, the block's corner off the box's. The rigid box's vertices have no
+    stiffness; swept with their inertia alone, the pair rows see the box ~1000x more
+    compliant than the block's vertices, and the contact iteration trades forces between
+    them: the first step (the block settling onto the box) took 4365 iterations at tol
+    1e-10. ``Contact.rigid_floor`` (default 0.01) sweeps them no lighter than 1% of the
+    stiff vertices' median: 130. It changes the iterations only: the step ends at the same
+    positions with and without it."""
+    def scene(floor):
+        rigid = RigidBody(box((0.02, 0.02, 0.02), centre=(0.0, 0.0, 0.01)), density=100.0, name="box")
+        block = SoftBody(grid_box((0.02, 0.02, 0.01), (2, 2, 1), origin=(-0.006, -0.004, 0.02 + THICKNESS)),
+                         Material(E=1e6, nu=0.3, density=1000.0), name="block")
+        return build([block, rigid], obstacles=[Plane(mu_s=0.5, mu_k=0.5)],
+                     rows=[Touch("block", "box", mu_s=MU, thickness=THICKNESS)],
+                     options=Options(dt=DT, tol=1e-10, max_iter=20000, contact=Contact(rigid_floor=floor)))
+
+    ends = {}
+    for floor in (0.01, 0.0):
+        model, params = scene(floor)
+        state, info = step(model, prepare(model, params), initial_state(model))
+        assert bool(info.converged)
+        ends[floor] = (np.asarray(state.x), int(info.iterations))
+    np.testing.assert_allclose(ends[0.01][0], ends[0.0][0], rtol=0, atol=1e-9)
+    assert ends[0.01][1] <= 300 and ends[0.0][1] > 4 * ends[0.01][1]
+    gaps = _row_gaps(model, params, np.stack([np.asarray(initial_state(model).x), ends[0.01][0]]))
+    assert gaps.min() > -1e-9
+
+
 def test_stack_of_three_rigid_boxes_stays_for_two_seconds():
     """Three 10 cm rigid boxes stacked on the ground, each resting on the one below through
     pair rows: for 2 s every step converges and no box moves by 1 mm."""
