@@ -67,6 +67,7 @@ __all__ = [
     "evaluate_policy",
     "model_action_gradient",
     "ppo",
+    "ppo_policy",
     "virtual_samples",
 ]
 
@@ -827,6 +828,25 @@ def GymnaxEnv(env: E.Env):
     return _Gymnax(env)
 
 
+def ppo_policy(algo, ts):
+    """The deterministic policy of a trained rejax PPO: its mean action, clipped to ``[-1, 1]``.
+
+    Arguments:
+        algo: the rejax ``PPO`` (from :func:`ppo`); ts: its train state.
+
+    Returns:
+        ``policy(obs (size,)) -> action (n_actions,)`` float64, traceable.
+    """
+    def policy(obs):
+        if algo.normalize_observations:
+            obs = algo.normalize_obs(ts.obs_rms_state, obs)
+        mean = algo.actor.apply(ts.actor_ts.params, obs.astype(jnp.float32)[None],
+                                method=lambda mod, o: mod._action_dist(o).mean())
+        return jnp.clip(mean[0], -1.0, 1.0).astype(jnp.float64)
+
+    return policy
+
+
 def ppo(env: E.Env, total_steps: int, *, eval_every: int, num_envs: int = 4, num_steps: int = 25,
         eval_episodes: int = 1, **config):
     """rejax's PPO on a softbody environment, evaluated as :meth:`SAC.evaluate` does.
@@ -870,14 +890,7 @@ def ppo(env: E.Env, total_steps: int, *, eval_every: int, num_envs: int = 4, num
     networks = rejax.PPO.create_agent(options, gym, env.params)
 
     def eval_callback(algo, ts, rng):
-        def policy(obs):
-            if algo.normalize_observations:
-                obs = algo.normalize_obs(ts.obs_rms_state, obs)
-            mean = algo.actor.apply(ts.actor_ts.params, obs.astype(jnp.float32)[None],
-                                    method=lambda mod, o: mod._action_dist(o).mean())
-            return jnp.clip(mean[0], -1.0, 1.0).astype(jnp.float64)
-
-        return evaluate_policy(env, policy, rng, eval_episodes)
+        return evaluate_policy(env, ppo_policy(algo, ts), rng, eval_episodes)
 
     algo = rejax.PPO(env=gym, env_params=env.params, eval_callback=eval_callback, **networks, **options)
     return algo, algo.train

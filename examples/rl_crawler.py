@@ -47,7 +47,6 @@ if __name__ == "__main__":  # the first line, before the imports of JAX and soft
     print(f"{Path(__file__).name}: starting (importing JAX and softbody) ...", flush=True)
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 from softbody.control import env as E
 from softbody.control import rl
@@ -89,15 +88,7 @@ def train_agent(name: str, env, steps: int, seed: int):
         total = max(n_steps, steps // n_steps * n_steps)
         algo, train = rl.ppo(env, total, eval_every=total, num_envs=1, num_steps=n_steps, num_minibatches=2)
         ts, returns = jax.jit(train)(jax.random.PRNGKey(seed))
-
-        def policy(obs):
-            if algo.normalize_observations:
-                obs = algo.normalize_obs(ts.obs_rms_state, obs)
-            mean = algo.actor.apply(ts.actor_ts.params, obs.astype(jnp.float32)[None],
-                                    method=lambda mod, o: mod._action_dist(o).mean())
-            return jnp.clip(mean[0], -1.0, 1.0).astype(jnp.float64)
-
-        return policy, np.asarray(returns)[:, 0].tolist(), {"simulated_steps": total}
+        return rl.ppo_policy(algo, ts), np.asarray(returns)[:, 0].tolist(), {"simulated_steps": total}
     options = {"sac": {}, "sac_policy_enhancement": {"policy_enhancement": True},
                "sac_sample_enhancement": {"virtual_samples": 2}}[name]
     agent = rl.SAC(env, rl.SACConfig(warmup=min(200, steps // 2), buffer_size=max(steps * 3, 256), **options))
