@@ -77,6 +77,12 @@ LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
 # --------------------------------------------------------------------------- configuration
 
 
+def _whole(v, name: str, low: int = 1) -> int:
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
+        raise ControlError(f"{name} must be a whole number >= {low}, got {v!r}")
+    return int(v)
+
+
 @dataclasses.dataclass(frozen=True)
 class SACConfig:
     """Hyperparameters of :class:`SAC` (checked when made).
@@ -117,9 +123,7 @@ class SACConfig:
 
     def __post_init__(self):
         def whole(name, low):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
-                raise ControlError(f"SACConfig.{name} must be a whole number >= {low}, got {v!r}")
+            _whole(getattr(self, name), f"SACConfig.{name}", low)
 
         def real(name, ok, what):
             v = getattr(self, name)
@@ -732,19 +736,12 @@ class SAC:
         return self._programs[key]
 
 
-def _whole(v, name: str, low: int = 1) -> int:
-    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
-        raise ControlError(f"{name} must be a whole number >= {low}, got {v!r}")
-    return int(v)
-
-
 def evaluate_policy(env: E.Env, policy, key, episodes: int = 1, steps: int | None = None) -> Array:
     """The returns of ``policy(obs) -> action`` over ``episodes`` episodes (batched by
     ``vmap``), each ``steps`` long (default ``env.episode_length``; an episode that fails
     earlier stops collecting reward)."""
     steps = env.episode_length if steps is None else int(steps)
-    if isinstance(episodes, bool) or not isinstance(episodes, (int, np.integer)) or episodes < 1:
-        raise ControlError(f"episodes must be a whole number >= 1, got {episodes!r}")
+    _whole(episodes, "episodes")
 
     def one(k):
         obs, st = env._reset(k, env.params)
@@ -874,8 +871,7 @@ def ppo(env: E.Env, total_steps: int, *, eval_every: int, num_envs: int = 4, num
     rejax = _rejax()
     for name, v in (("total_steps", total_steps), ("eval_every", eval_every), ("num_envs", num_envs),
                     ("num_steps", num_steps), ("eval_episodes", eval_episodes)):
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-            raise ControlError(f"{name} must be a whole number >= 1, got {v!r}")
+        _whole(v, name)
     rollout = num_envs * num_steps
     if eval_every % rollout or total_steps % eval_every:
         raise ControlError(f"eval_every ({eval_every}) must be a multiple of num_envs * num_steps ({rollout}) and "
