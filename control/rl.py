@@ -868,7 +868,6 @@ def ppo(env: E.Env, total_steps: int, *, eval_every: int, num_envs: int = 4, num
         ImportError: rejax missing (``pip install softbody[rl]``).
         ControlError: bad step counts.
     """
-    rejax = _rejax()
     for name, v in (("total_steps", total_steps), ("eval_every", eval_every), ("num_envs", num_envs),
                     ("num_steps", num_steps), ("eval_episodes", eval_episodes)):
         _whole(v, name)
@@ -876,6 +875,7 @@ def ppo(env: E.Env, total_steps: int, *, eval_every: int, num_envs: int = 4, num
     if eval_every % rollout or total_steps % eval_every:
         raise ControlError(f"eval_every ({eval_every}) must be a multiple of num_envs * num_steps ({rollout}) and "
                            f"divide total_steps ({total_steps})")
+    rejax = _rejax()
     gym = GymnaxEnv(env)
     options = {"num_epochs": 4, "num_minibatches": 4, "learning_rate": 3e-4, "gamma": 0.99, "normalize_observations": True,
                    "agent_kwargs": {"activation": "tanh", "hidden_layer_sizes": (64, 64)}}
