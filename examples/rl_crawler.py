@@ -64,13 +64,12 @@ EPISODE, EVAL_STEPS = 50, 200
 def crawler_env(model, params, *, training: bool = True):
     """The crawler's environment: training episodes (50 steps, reset noise, reward in mm
     per step with the action penalty) or the 2 s evaluation (no noise, reward in m)."""
+    common = {"observation": E.Positions(model, "xmax"), "action_map": E.ActionMap(model, low=0.0, high=A_MAX)}
     if training:
         reward = 1e3 * E.Progress(model) + 0.01 * E.ActionPenalty()
-        return E.Env(model, params, observation=E.Positions(model, "xmax"), reward=reward,
-                     action_map=E.ActionMap(model, low=0.0, high=A_MAX), episode_length=EPISODE,
-                     reset_noise=E.ResetNoise(velocity=1e-3))
-    return E.Env(model, params, observation=E.Positions(model, "xmax"), reward=E.Progress(model),
-                 action_map=E.ActionMap(model, low=0.0, high=A_MAX), episode_length=EVAL_STEPS)
+        return E.Env(model, params, reward=reward, episode_length=EPISODE, reset_noise=E.ResetNoise(velocity=1e-3),
+                     **common)
+    return E.Env(model, params, reward=E.Progress(model), episode_length=EVAL_STEPS, **common)
 
 
 def trajectory_optimisation_figure(readme: Path) -> float | None:
@@ -97,8 +96,7 @@ def train_agent(name: str, env, steps: int, seed: int):
     r, d = np.asarray(rewards)[:, 0], np.asarray(dones)[:, 0]
     ends = np.flatnonzero(d)
     returns = [float(r[a + 1:b + 1].sum()) for a, b in zip(np.r_[-1, ends[:-1]], ends)]
-    actor = state.actor
-    return actor.deterministic, returns, {"simulated_steps": steps, "virtual_samples_kept": int(state.virtual)}
+    return state.actor.deterministic, returns, {"simulated_steps": steps, "virtual_samples_kept": int(state.virtual)}
 
 
 def main(argv=None):

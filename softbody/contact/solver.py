@@ -209,10 +209,10 @@ class Contact:
             at 0.01; ``examples/grasp.py``'s rigid box (30 kPa, 150 steps) had six steps at the
             6000 cap, every step converges at 0.01 (median 170 iterations, max 367; the
             rollout 218 s once compiled, one core: 10 ms an iteration, 3.4 ms for the soft
-            cube's, the rigid part's 30 pair sweeps an iteration). Larger floors slow a rigid body's own motion in the
-            iteration (a rigid cube landing on a soft one: one impact step at the 3000 cap at
-            1; ``softbody bench many-bodies``' mixed 16 cubes: the lower layer's landing on
-            the ground at the cap at 0.01).
+            cube's, the rigid part's 30 pair sweeps an iteration). Larger floors slow a rigid
+            body's own motion in the iteration (a rigid cube landing on a soft one: one
+            impact step at the 3000 cap at 1; ``softbody bench many-bodies``' mixed 16
+            cubes: the lower layer's landing on the ground at the cap at 0.01).
 
     The PD matrix is prefactored with the true volume weight (``volume_weight = 1``):
     its diagonal defines ``P``.
